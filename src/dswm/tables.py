@@ -1,0 +1,192 @@
+"""The paper's two result tables, assembled from the per-day result files only (never logs or MLflow).
+
+* ``milan_main``  (Table III): per method, the main dataset's weekday (ID) and holiday (OOD) served ratio,
+  mean and standard deviation over seeds, rows grouped by method class.
+* ``cross_dataset`` (Table IV): the same per (method, dataset).
+
+A seed's score on a split is the mean of its days' ``sr_mean``; the table reports mean and sample standard
+deviation (ddof=1; 0 with a single seed) of those scores over seeds. Each table states the profile and
+whether each dataset's data was the embedded demo or the real published files. Every file is written in
+Markdown, LaTeX and CSV (the CSV columns are fixed for other tools).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import polars as pl
+
+from dswm.atomic import write_text
+
+MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
+CROSS_COLUMNS = ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
+DATASET_LABELS = {"milan": "Milan", "shanghai": "Shanghai", "yjmob": "YJMob"}
+REQUIRED = {"dataset", "method", "seed", "split", "day", "sr_mean", "profile"}
+
+
+def read_results(paths: Iterable[str | Path]) -> pl.DataFrame:
+    """Concatenate per-day result files; refuse a file that lacks a required column or has no rows."""
+    frames = []
+    for p in paths:
+        df = pl.read_parquet(p)
+        missing = REQUIRED - set(df.columns)
+        if missing:
+            raise ValueError(f"{p}: result file lacks column(s) {sorted(missing)}; expected {sorted(REQUIRED)}")
+        if df.height == 0:
+            raise ValueError(f"{p}: result file has no rows; expected one row per evaluated day")
+        frames.append(df.select(sorted(REQUIRED)))
+    if not frames:
+        raise ValueError("no result files given; expected results/{dataset}/{method}/seed{seed}/days.parquet")
+    return pl.concat(frames)
+
+
+def summarize(days: pl.DataFrame) -> pl.DataFrame:
+    """Per (dataset, method): mean/std over seeds of each seed's mean day score, per split.
+
+    Args:
+        days: rows (dataset, method, seed, split, day, sr_mean).
+
+    Returns:
+        Columns dataset, method, weekday_mean, weekday_std, holiday_mean, holiday_std, n_seeds.
+    """
+    per_seed = days.group_by("dataset", "method", "seed", "split").agg(pl.col("sr_mean").mean().alias("score"))
+    out = None
+    for split, word in (("id", "weekday"), ("ood", "holiday")):
+        s = (per_seed.filter(pl.col("split") == split).group_by("dataset", "method")
+             .agg(pl.col("score").mean().alias(f"{word}_mean"),
+                  pl.col("score").std(ddof=1).fill_null(0.0).alias(f"{word}_std"),
+                  pl.col("seed").n_unique().alias(f"{word}_n")))
+        out = s if out is None else out.join(s, on=["dataset", "method"], how="full", coalesce=True)
+    bad = out.filter(pl.col("weekday_n").is_null() | pl.col("holiday_n").is_null()
+                     | (pl.col("weekday_n") != pl.col("holiday_n")))
+    if bad.height:
+        row = bad.row(0, named=True)
+        raise ValueError(f"results of {row['dataset']}/{row['method']}: weekday and holiday splits cover different "
+                         f"seeds ({row['weekday_n']} vs {row['holiday_n']}); expected both splits for every seed")
+    return out.with_columns(pl.col("weekday_n").cast(pl.Int64).alias("n_seeds")).drop("weekday_n", "holiday_n")
+
+
+def _order(methods: list[str], classes: Mapping[str, str], class_order: list[str]) -> list[str]:
+    """Methods grouped by class in ``class_order`` (unknown classes last), run order within a class."""
+    rank = {c: i for i, c in enumerate(class_order)}
+    return sorted(methods, key=lambda m: (rank.get(classes[m], len(rank)), methods.index(m)))
+
+
+def _csv(rows: list[dict], columns: list[str]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({c: r[c] for c in columns} for r in rows)
+    return buf.getvalue()
+
+
+def _fmt(mean: float, std: float, n: int, d: int) -> str:
+    return f"{mean:.{d}f}±{std:.{d}f}" if n > 1 else f"{mean:.{d}f}"
+
+
+def _tex_escape(text: str) -> str:
+    for char, repl in (("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"), ("±", r"$\pm$")):
+        text = text.replace(char, repl)
+    return text
+
+
+def provenance(profile: str, sources: Mapping[str, str]) -> str:
+    """The line every table carries: profile and the data source of each dataset."""
+    data = ", ".join(f"{DATASET_LABELS.get(d, d)}: {s}" for d, s in sources.items())
+    return f"profile: {profile}; data: {data}"
+
+
+def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str, str | Path],
+                 specs: Mapping[str, Any], run_order: list[str], tables_cfg: Mapping[str, Any],
+                 profile: str, out_dir: str | Path) -> dict[str, pl.DataFrame]:
+    """Write milan_main.{md,tex,csv} and cross_dataset.{md,tex,csv} into ``out_dir``.
+
+    Args:
+        result_paths: every days.parquet of the profile.
+        meta_paths: {dataset: meta.json of its prepared tensor} (for demo/real).
+        specs: {method: MethodSpec} (label and class of each row).
+        run_order: methods in config order.
+        tables_cfg: the ``tables`` section (main_dataset, decimals, split_labels, class_order).
+        profile: the profile the results must come from.
+        out_dir: destination directory.
+
+    Returns:
+        {"milan_main": DataFrame, "cross_dataset": DataFrame} with the CSV columns.
+    """
+    days = read_results(result_paths)
+    wrong = days.filter(pl.col("profile") != profile)
+    if wrong.height:
+        raise ValueError(f"result files hold profile {wrong['profile'][0]!r} rows, expected {profile!r} only "
+                         f"(rerun the evaluate jobs of this profile)")
+    summary = summarize(days)
+    sources = {ds: json.loads(Path(p).read_text())["source"] for ds, p in meta_paths.items()}
+    note = provenance(profile, sources)
+    d = int(tables_cfg["decimals"])
+    id_label, ood_label = tables_cfg["split_labels"]["id"], tables_cfg["split_labels"]["ood"]
+    methods = [m for m in run_order if m in set(summary["method"])]
+    classes = {m: specs[m].table_class for m in methods}
+    order = _order(methods, classes, list(tables_cfg["class_order"]))
+    out_dir = Path(out_dir)
+
+    # Table III: the main dataset
+    main_ds = tables_cfg["main_dataset"]
+    main = summary.filter(pl.col("dataset") == main_ds)
+    by_method = {r["method"]: r for r in main.iter_rows(named=True)}
+    main_rows = [{"method": m, "class": classes[m], **{k: by_method[m][k] for k in MAIN_COLUMNS[2:]}}
+                 for m in order if m in by_method]
+    main_df = pl.DataFrame(main_rows, schema={c: pl.Float64 if "mean" in c or "std" in c else
+                                              (pl.Int64 if c == "n_seeds" else pl.String) for c in MAIN_COLUMNS})
+    title = (f"{DATASET_LABELS.get(main_ds, main_ds)} main results: served ratio "
+             f"({id_label} ID / {ood_label} OOD), mean±std over seeds")
+    md = [f"## {title}", "", f"_{note}_", "", f"| Method | Class | {id_label} | {ood_label} | Seeds |",
+          "|---|---|---|---|---|"]
+    tex_rows = []
+    for r in main_rows:
+        label = specs[r["method"]].label
+        wk = _fmt(r["weekday_mean"], r["weekday_std"], r["n_seeds"], d)
+        hd = _fmt(r["holiday_mean"], r["holiday_std"], r["n_seeds"], d)
+        md.append(f"| {label} | {r['class']} | {wk} | {hd} | {r['n_seeds']} |")
+        tex_rows.append(f"{_tex_escape(label)} & {_tex_escape(r['class'])} & {_tex_escape(wk)} & "
+                        f"{_tex_escape(hd)} \\\\")
+    tex = _tex_table(caption=f"{title}. {note}.", label="tab:milan", spec="@{}llcc@{}",
+                     header=f"Method & Class & {id_label} & {ood_label} \\\\", rows=tex_rows)
+    write_text(out_dir / "milan_main.md", "\n".join(md) + "\n")
+    write_text(out_dir / "milan_main.tex", tex)
+    write_text(out_dir / "milan_main.csv", _csv(main_rows, MAIN_COLUMNS))
+
+    # Table IV: every dataset
+    datasets = [ds for ds in DATASET_LABELS if ds in set(summary["dataset"])]
+    cells = {(r["method"], r["dataset"]): r for r in summary.iter_rows(named=True)}
+    cross_rows = [{"method": m, "dataset": ds, **{k: cells[(m, ds)][k] for k in CROSS_COLUMNS[2:]}}
+                  for m in order for ds in datasets if (m, ds) in cells]
+    cross_df = pl.DataFrame(cross_rows, schema={c: pl.Float64 if "mean" in c or "std" in c else
+                                                (pl.Int64 if c == "n_seeds" else pl.String) for c in CROSS_COLUMNS})
+    title = f"Cross-dataset results: {id_label} / {ood_label} served ratio (mean over seeds)"
+    heads = [f"{DATASET_LABELS[ds]}" for ds in datasets]
+    md = [f"## {title}", "", f"_{note}_", "", "| Method | " + " | ".join(heads) + " |",
+          "|---|" + "---|" * len(datasets)]
+    tex_rows = []
+    for m in order:
+        vals = [f"{cells[(m, ds)]['weekday_mean']:.{d}f}/{cells[(m, ds)]['holiday_mean']:.{d}f}"
+                if (m, ds) in cells else "--" for ds in datasets]
+        md.append(f"| {specs[m].label} | " + " | ".join(vals) + " |")
+        tex_rows.append(f"{_tex_escape(specs[m].label)} & " + " & ".join(vals) + " \\\\")
+    seeds = "; ".join(f"{DATASET_LABELS[ds]} {summary.filter(pl.col('dataset') == ds)['n_seeds'].max()} seed(s)"
+                      for ds in datasets)
+    md += ["", f"Seeds: {seeds}."]
+    tex = _tex_table(caption=f"{title}; {seeds}. {note}.", label="tab:cross", spec="@{}l" + "c" * len(datasets) + "@{}",
+                     header="Method & " + " & ".join(heads) + " \\\\", rows=tex_rows)
+    write_text(out_dir / "cross_dataset.md", "\n".join(md) + "\n")
+    write_text(out_dir / "cross_dataset.tex", tex)
+    write_text(out_dir / "cross_dataset.csv", _csv(cross_rows, CROSS_COLUMNS))
+    return {"milan_main": main_df, "cross_dataset": cross_df}
+
+
+def _tex_table(*, caption: str, label: str, spec: str, header: str, rows: list[str]) -> str:
+    """A booktabs table environment."""
+    return "\n".join([r"\begin{table}[!t]", r"\centering", f"\\caption{{{_tex_escape(caption)}}}",
+                      f"\\label{{{label}}}", f"\\begin{{tabular}}{{{spec}}}", r"\toprule", header, r"\midrule",
+                      *rows, r"\bottomrule", r"\end{tabular}", r"\end{table}", ""])
