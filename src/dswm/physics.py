@@ -1,0 +1,247 @@
+"""The service model of SPEC section 2: the ONE implementation used by the environment, every planner and
+the world model's decomposed service head.
+
+Chain for a batch of N candidate fleets, K UAVs and G cells:
+nearest-available association (distances for every (candidate, cell, UAV), no transcendental work)
+-> elevation angle, Al-Hourani LoS probability and dB-mixed path loss for the ASSOCIATED pair only
+-> per-UAV bandwidth split with weights x_g^tau_k, tau_k = exp(bw_logit_k)
+-> Shannon rate -> capped fulfilment f_g = min(1, R_g / (x_g u r0)) -> served ratio sum x f / sum x.
+
+Association is hard (argmin); gradients reach the UAV positions through the associated pair's distance and
+reach the demand through the bandwidth shares and the fulfilment, which is what a planner or a world model
+needs. Everything is batched over the leading candidate axis.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import torch
+
+from dswm.config import Scenario
+
+SPEED_OF_LIGHT_MPS = 299_792_458.0
+# Demand below this (in normalized units, i.e. a 1e-9 fraction of the training p99) counts as no demand:
+# it keeps x^tau and the bandwidth shares finite in float32 and changes no served ratio measurably.
+DEMAND_EPS = 1e-9
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ServiceParams:
+    """Constants of the service model (a projection of the Scenario)."""
+
+    altitude_m: float = 100.0
+    carrier_hz: float = 2.0e9
+    bandwidth_hz: float = 2.0e7
+    tx_power_w: float = 0.5
+    noise_psd_w_per_hz: float = 10.0**-20.4
+    r0_bps: float = 5.0e5
+    demand_intensity: float = 1.0
+    u_peak: float = 0.8
+    los_a: float = 9.61
+    los_b: float = 0.16
+    eta_los_db: float = 1.0
+    eta_nlos_db: float = 20.0
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario) -> "ServiceParams":
+        """Take the service constants out of a Scenario."""
+        return cls(
+            altitude_m=scenario.altitude_m,
+            carrier_hz=scenario.carrier_hz,
+            bandwidth_hz=scenario.bandwidth_hz,
+            tx_power_w=scenario.tx_power_w,
+            noise_psd_w_per_hz=scenario.noise_psd_w_per_hz,
+            r0_bps=scenario.r0_bps,
+            demand_intensity=scenario.demand_intensity,
+            u_peak=scenario.u_peak,
+            los_a=scenario.channel.a,
+            los_b=scenario.channel.b,
+            eta_los_db=scenario.channel.eta_los_db,
+            eta_nlos_db=scenario.channel.eta_nlos_db,
+        )
+
+
+class ServiceResult(NamedTuple):
+    """Per-candidate outcome of one slot of service."""
+
+    sr: torch.Tensor
+    """(N,) served ratio."""
+    fulfilment: torch.Tensor
+    """(N, G) capped fulfilment f_g (0 for cells without demand or without a UAV)."""
+    assoc: torch.Tensor
+    """(N, G) int64 index of the serving UAV (meaningless where no UAV is available)."""
+    rate_bps: torch.Tensor
+    """(N, G) Shannon rate of the cell's link (0 for cells without demand)."""
+    share_hz: torch.Tensor
+    """(N, G) bandwidth given to the cell."""
+
+
+def los_probability(theta_deg, a: float = 9.61, b: float = 0.16):
+    """LoS probability 1 / (1 + a exp(-b (theta - a))) with the elevation angle in DEGREES.
+
+    Args:
+        theta_deg: float or tensor of elevation angles in degrees.
+        a, b: Al-Hourani environment constants (urban defaults).
+
+    Returns:
+        Same type and shape as ``theta_deg``.
+    """
+    if isinstance(theta_deg, torch.Tensor):
+        return torch.sigmoid(b * (theta_deg - a) - math.log(a))
+    return 1.0 / (1.0 + a * math.exp(-b * (float(theta_deg) - a)))
+
+
+def elevation_deg(distance_m, altitude_m: float):
+    """Elevation angle arcsin(h / d) in degrees (tensor or float)."""
+    if isinstance(distance_m, torch.Tensor):
+        return torch.rad2deg(torch.asin(torch.clamp(altitude_m / distance_m, max=1.0)))
+    return math.degrees(math.asin(min(1.0, altitude_m / float(distance_m))))
+
+
+def path_loss_db(distance_m, params: ServiceParams = ServiceParams()):
+    """Expected path loss in dB: free space plus LoS/NLoS excess losses mixed in dB (paper eq. 2).
+
+    Args:
+        distance_m: 3-D link distance, float or tensor.
+        params: channel constants.
+
+    Returns:
+        Path loss in dB, same type and shape as the input.
+    """
+    theta = elevation_deg(distance_m, params.altitude_m)
+    p_los = los_probability(theta, params.los_a, params.los_b)
+    fspl_k = 20.0 * math.log10(4.0 * math.pi * params.carrier_hz / SPEED_OF_LIGHT_MPS)
+    if isinstance(distance_m, torch.Tensor):
+        fspl = fspl_k + 20.0 * torch.log10(distance_m)
+    else:
+        fspl = fspl_k + 20.0 * math.log10(float(distance_m))
+    return fspl + p_los * params.eta_los_db + (1.0 - p_los) * params.eta_nlos_db
+
+
+def associate(pos: torch.Tensor, available: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """Nearest available UAV of every cell by horizontal distance.
+
+    Args:
+        pos: (N, K, 2) UAV positions in metres.
+        available: (N, K) bool, airborne and active.
+        cells: (G, 2) cell centres in metres.
+
+    Returns:
+        (N, G) int64 index of the nearest available UAV (arbitrary where none is available).
+    """
+    with torch.no_grad():
+        p = pos.detach()
+        n = p.shape[0]
+        # |c - p|^2 = |c|^2 - 2 c.p + |p|^2; the |c|^2 term does not change the argmin over UAVs.
+        p_sq = (p * p).sum(-1).masked_fill(~available, float("inf"))  # (N, K)
+        c = cells.to(p.dtype).unsqueeze(0).expand(n, -1, -1)  # (N, G, 2)
+        d2 = torch.baddbmm(p_sq.unsqueeze(1), c, p.transpose(1, 2), alpha=-2.0)  # (N, G, K)
+        # min(...).indices is markedly faster than argmin over a short trailing axis on CPU.
+        return d2.min(dim=-1).indices
+
+
+def service(
+    demand: torch.Tensor,
+    pos: torch.Tensor,
+    available: torch.Tensor,
+    cells: torch.Tensor,
+    *,
+    params: ServiceParams,
+    bw_logit: torch.Tensor | None = None,
+) -> ServiceResult:
+    """Serve one slot of demand with N candidate fleets.
+
+    Args:
+        demand: (N, G) or (G,) non-negative normalized demand x_g.
+        pos: (N, K, 2) UAV positions in metres.
+        available: (N, K) bool, UAVs that are airborne and active (not returning, not charging).
+        cells: (G, 2) cell centres in metres.
+        params: service constants.
+        bw_logit: (N, K) bandwidth logits in [-1, 1], or None for the demand-proportional split (logit 0).
+
+    Returns:
+        ServiceResult with sr (N,), fulfilment/assoc/rate_bps/share_hz (N, G).
+    """
+    n, k, _ = pos.shape
+    x = demand.to(pos.dtype)
+    if x.dim() == 1:
+        x = x.unsqueeze(0)
+    x = x.expand(n, -1)
+    x = torch.where(x > DEMAND_EPS, x, torch.zeros_like(x))
+    assoc = associate(pos, available, cells)  # (N, G)
+    has_demand = x > 0
+    x_safe = torch.where(has_demand, x, torch.ones_like(x))
+
+    # Channel of the associated pair only: O(N*G) transcendental work.
+    serving = torch.gather(pos, 1, assoc.unsqueeze(-1).expand(-1, -1, 2))  # (N, G, 2)
+    horiz2 = ((serving - cells.to(pos.dtype)) ** 2).sum(-1)
+    dist = torch.sqrt(horiz2 + params.altitude_m**2)
+    gain_db = -path_loss_db(dist, params)
+
+    # Bandwidth split over the UAV's associated cells with weights x^tau (zero-demand cells get nothing).
+    if bw_logit is None:
+        weight = torch.where(has_demand, x, torch.zeros_like(x))
+    else:
+        tau = torch.exp(torch.gather(bw_logit.to(pos.dtype), 1, assoc))
+        weight = torch.where(has_demand, torch.exp(tau * torch.log(x_safe)), torch.zeros_like(x))
+    weight_sum = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, weight)
+    denom = torch.gather(weight_sum, 1, assoc)
+    share = params.bandwidth_hz * weight / torch.where(denom > 0, denom, torch.ones_like(denom))
+    share_safe = torch.where(has_demand, share, torch.ones_like(share))
+
+    # Shannon rate and capped fulfilment.
+    snr = params.tx_power_w * torch.pow(10.0, gain_db / 10.0) / (params.noise_psd_w_per_hz * share_safe)
+    rate = torch.where(has_demand, share_safe * torch.log2(1.0 + snr), torch.zeros_like(x))
+    requested = x_safe * (params.demand_intensity * params.r0_bps)
+    fulfil = torch.where(has_demand, torch.clamp(rate / requested, max=1.0), torch.zeros_like(x))
+
+    any_available = available.any(dim=-1)  # (N,)
+    fulfil = fulfil * any_available.unsqueeze(-1).to(fulfil.dtype)
+    total = x.sum(-1)
+    served = (x * fulfil).sum(-1)
+    sr = torch.where(total > 0, served / torch.where(total > 0, total, torch.ones_like(total)),
+                     torch.ones_like(total))
+    sr = torch.where(any_available, sr, torch.zeros_like(sr))
+    return ServiceResult(sr=sr, fulfilment=fulfil, assoc=assoc, rate_bps=rate, share_hz=share)
+
+
+def served_ratio(
+    demand: torch.Tensor,
+    pos: torch.Tensor,
+    available: torch.Tensor,
+    cells: torch.Tensor,
+    *,
+    params: ServiceParams,
+    bw_logit: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Served ratio SR = sum_g x_g f_g / sum_g x_g of N candidate fleets (paper eq. 6).
+
+    Args: as ``service``.
+
+    Returns:
+        (N,) served ratio in [0, 1]; 1 where the slot has no demand, 0 where no UAV is available.
+    """
+    return service(demand, pos, available, cells, params=params, bw_logit=bw_logit).sr
+
+
+def jain_index(fulfilment: torch.Tensor, demand: torch.Tensor, u_peak: float) -> torch.Tensor:
+    """Jain index over demand-carrying cells of f~ (f~ = 1 where f >= U_peak, else f).
+
+    Args:
+        fulfilment: (N, G) capped fulfilment.
+        demand: (N, G) or (G,) demand; cells with zero demand are left out.
+        u_peak: satisfaction threshold.
+
+    Returns:
+        (N,) Jain index in (0, 1]; 1 where no cell carries demand.
+    """
+    mask = (demand > 0).expand_as(fulfilment).to(fulfilment.dtype)
+    f = torch.where(fulfilment >= u_peak, torch.ones_like(fulfilment), fulfilment) * mask
+    n = mask.sum(-1)
+    s1 = f.sum(-1)
+    s2 = (f * f).sum(-1)
+    ok = (n > 0) & (s2 > 0)
+    jain = s1 * s1 / torch.where(ok, n * s2, torch.ones_like(s2))
+    return torch.where(ok, jain, torch.where(n > 0, torch.zeros_like(s2), torch.ones_like(s2)))

@@ -1,0 +1,29 @@
+"""Shared fixtures: the repository's scenario and small grids."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+from dswm.config import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+torch.set_num_threads(2)
+
+
+@pytest.fixture(scope="session")
+def scenario():
+    """The scenario of config.yaml."""
+    return load_scenario(ROOT / "config.yaml")
+
+
+@pytest.fixture
+def make_scenario(scenario):
+    """The config scenario with some constants replaced."""
+    def make(**changes):
+        return dataclasses.replace(scenario, **changes)
+    return make
