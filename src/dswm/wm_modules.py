@@ -26,30 +26,30 @@ def symexp(y: torch.Tensor) -> torch.Tensor:
 class ObsEncoder(nn.Module):
     """e_psi(o_t): demand window on any grid + fleet state + time phase -> embedding.
 
-    A small conv stack with adaptive pooling reads the window's spatial pattern on any grid size; a linear
+    Two stride-2 convs read the window's spatial pattern on any grid size (the model is trained per
+    dataset, so the flattened conv output size follows from the grid; stride 2 twice because the encoder
+    is the largest cost of a training step); a linear
     map of the newest map keeps cell-level detail (the model is trained per dataset, so the grid is known);
     the fleet (K, 7) and the time phase (2,) enter through an MLP.
     """
 
-    def __init__(self, *, window: int, rows: int, cols: int, n_uavs: int, embed: int, channels: int,
-                 pooled: int):
+    def __init__(self, *, window: int, rows: int, cols: int, n_uavs: int, embed: int, channels: int):
         super().__init__()
         c = channels
         self.conv = nn.Sequential(
-            nn.Conv2d(window, c, 3, padding=1), nn.ELU(),
-            nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.ELU(),
-            nn.AdaptiveAvgPool2d(pooled), nn.Flatten())
+            nn.Conv2d(window, c, 3, stride=2, padding=1), nn.ELU(),
+            nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.ELU(), nn.Flatten())
+        conv_out = 2 * c * ((rows + 3) // 4) * ((cols + 3) // 4)   # 5x5 for 20x20, 3x3 for 9x9
         self.last_map = nn.Linear(rows * cols, embed)
         self.fleet = nn.Sequential(nn.Linear(n_uavs * 7 + 2, embed), nn.ELU())
-        self.out = nn.Sequential(nn.Linear(2 * c * pooled * pooled + 2 * embed, embed), nn.LayerNorm(embed),
-                                 nn.ELU())
+        self.out = nn.Sequential(nn.Linear(conv_out + 2 * embed, embed), nn.LayerNorm(embed), nn.ELU())
         # Normalizer of symlog demand (set from the training replay; saved in every checkpoint).
         self.register_buffer("dem_mean", torch.zeros(()))
         self.register_buffer("dem_std", torch.ones(()))
 
-    def forward(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """Args: demand (B, W, R, C), fleet (B, K, 7), time (B, 2).  Returns: (B, embed)."""
-        d = (symlog(demand) - self.dem_mean) / self.dem_std
+    def forward(self, demand_symlog: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """Args: symlog(demand) (B, W, R, C), fleet (B, K, 7), time (B, 2).  Returns: (B, embed)."""
+        d = (demand_symlog - self.dem_mean) / self.dem_std
         spatial = self.conv(d)                                            # (B, 2c * pooled^2)
         last = F.elu(self.last_map(d[:, -1].flatten(1)))                  # (B, embed)
         fl = self.fleet(torch.cat([fleet.flatten(1), time], -1))          # (B, embed)
