@@ -1,0 +1,45 @@
+# Data preparation (SPEC section 4): demo raw files, demand tensors, exploratory statistics.
+from prep.pipeline import raw_inputs, reference_input
+
+
+rule demo_raw:
+    output:
+        raw=directory("results/raw/{dataset}/demo"),
+    params:
+        settings=lambda wc: config["datasets"][wc.dataset],
+    log:
+        "logs/prep/demo_raw_{dataset}.log",
+    benchmark:
+        "results/benchmarks/prep/demo_raw_{dataset}.tsv"
+    script:
+        "../scripts/demo_raw.py"
+
+
+rule prepare:
+    input:
+        raw=lambda wc: raw_inputs(config, wc.dataset),
+        reference=lambda wc: reference_input(config, wc.dataset),
+    output:
+        tensor="results/data/{dataset}/demand.parquet",
+        meta="results/data/{dataset}/meta.json",
+    params:
+        settings=lambda wc: {"dataset": config["datasets"][wc.dataset], "common": config["datasets"]["common"]},
+    log:
+        "logs/prep/prepare_{dataset}.log",
+    benchmark:
+        "results/benchmarks/prep/prepare_{dataset}.tsv"
+    script:
+        "../scripts/prep_prepare.py"
+
+
+rule eda:
+    input:
+        tensor=rules.prepare.output.tensor,
+        meta=rules.prepare.output.meta,
+    output:
+        stats="results/eda/{dataset}/eda.json",
+        figure="results/eda/{dataset}/eda.png",
+    log:
+        "logs/prep/eda_{dataset}.log",
+    script:
+        "../scripts/eda.py"

@@ -1,0 +1,105 @@
+"""Entry points used by the Snakemake rules: demo generation, preparation, and the rules' inputs."""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from prep import tensor
+from prep.config import common_config, dataset_config
+from prep.days import pick_eval_days
+from prep.rawio import PrepError, expand_paths
+
+log = logging.getLogger(__name__)
+
+DEMO_DIR = "results/raw/{dataset}/demo"
+DATA_DIR = "results/data/{dataset}"
+
+
+def raw_inputs(config: dict, dataset: str, *, root: Path | str = ".") -> list[str]:
+    """The raw inputs of `prepare` for Snakemake: the demo directory, or the user's expanded raw files.
+
+    Args:
+        config: the full config dict.
+        dataset: dataset name.
+        root: directory that relative raw paths are resolved against (the workflow's working directory).
+    Returns:
+        A list of paths (strings).
+    """
+    cfg = dataset_config(config, dataset)
+    if cfg.source == "demo":
+        return [DEMO_DIR.format(dataset=dataset)]
+    return [str(p) for p in expand_paths(cfg.raw_files, root=Path(root))]
+
+
+def reference_input(config: dict, dataset: str) -> list[str]:
+    """[meta.json of the kappa reference dataset] for every other dataset, [] for the reference itself."""
+    ref = common_config(config).kappa_reference
+    return [] if dataset == ref else [f"{DATA_DIR.format(dataset=ref)}/{tensor.META_FILE}"]
+
+
+def generate_demo(config: dict, dataset: str, out_dir: Path | str) -> list[Path]:
+    """Writes the demo raw files of `dataset` into `out_dir` (see prep.demo)."""
+    from prep.demo import generate
+
+    files = generate(dataset, dataset_config(config, dataset), Path(out_dir))
+    log.info("%s demo: wrote %d raw file(s) to %s", dataset, len(files), out_dir)
+    return files
+
+
+def _collect(paths: list[str]) -> list[Path]:
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out.extend(sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith(".")))
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise PrepError(f"raw input {p}: no such file or directory")
+    return out
+
+
+def prepare_dataset(config: dict, dataset: str, *, raw: list[str], out_dir: Path | str,
+                    reference_meta: str | None) -> dict:
+    """Prepares one dataset: raw files -> demand.parquet + meta.json in `out_dir` (atomically).
+
+    Args:
+        config: the full config dict.
+        dataset: "milan", "shanghai" or "yjmob".
+        raw: raw files and/or directories holding them.
+        out_dir: results/data/{dataset}.
+        reference_meta: meta.json of the kappa reference dataset (None for the reference itself).
+    Returns:
+        The written meta dict.
+    """
+    cfg = dataset_config(config, dataset)
+    common = common_config(config)
+    paths = _collect(raw)
+    if not paths:
+        raise PrepError(f"{dataset}: no raw file found in {raw}")
+    log.info("%s: preparing from %d raw file(s), source=%s", dataset, len(paths), cfg.source)
+    if dataset == "milan":
+        from prep.milan import build
+    elif dataset == "shanghai":
+        from prep.shanghai import build
+    else:
+        from prep.yjmob import build
+    raw_tensor = build(cfg, paths)  # type: ignore[arg-type]
+    eval_days = pick_eval_days(raw_tensor.days, raw_tensor.weekend, cfg.eval_days, dataset=dataset)
+    ref_mean = None
+    if dataset != common.kappa_reference:
+        if reference_meta is None:
+            raise PrepError(f"{dataset}: kappa needs the meta.json of {common.kappa_reference}")
+        ref = json.loads(Path(reference_meta).read_text())
+        if ref.get("dataset") != common.kappa_reference:
+            raise PrepError(f"{reference_meta}: expected the meta.json of {common.kappa_reference!r}, found "
+                            f"dataset {ref.get('dataset')!r}")
+        ref_mean = float(ref["train_mean_normalized"]) * float(ref["kappa"])
+    demand, meta = tensor.finalize(raw_tensor, common=common, cfg=cfg, source=cfg.source, eval_days=eval_days,
+                                   reference_mean=ref_mean)
+    tensor.write(out_dir, demand, meta)
+    log.info("%s: wrote %s (days=%d, grid=%dx%d) p99=%.6g kappa=%.6g zero_cell_rate=%.4f top5_share=%.4f "
+             "eval_days=%s dropped=%s", dataset, out_dir, demand.shape[0], demand.shape[2], demand.shape[3],
+             meta["p99"], meta["kappa"], meta["zero_cell_rate"], meta["top5_share"], meta["eval_days"],
+             meta["dropped"])
+    return meta
