@@ -1,0 +1,206 @@
+"""What the audit reads, read once and only through the ledger: config, prepared data, raw files, results.
+
+The EXPECTED facts (which days are training days, which eval days, which hashes) are derived here from
+config.yaml directly, never from the files under audit; the files are then compared against them.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import importlib
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from audits.ledger import ReadLedger
+
+
+class AuditInputError(RuntimeError):
+    """A file the audit needs is missing or unreadable; the message names it."""
+
+
+def label_range(first: Any, last: Any) -> list[str]:
+    """Day labels of an inclusive segment: ISO dates for dates, "d<n>" for day numbers."""
+    try:
+        a, b = int(str(first)), int(str(last))
+        return [f"d{n}" for n in range(a, b + 1)]
+    except ValueError:
+        a, b = dt.date.fromisoformat(str(first)), dt.date.fromisoformat(str(last))
+        return [(a + dt.timedelta(days=k)).isoformat() for k in range((b - a).days + 1)]
+
+
+def label_order(label: str) -> int:
+    """A sortable number of a day label (date ordinal, or the day number of "d<n>")."""
+    return int(label[1:]) if label.startswith("d") else dt.date.fromisoformat(label).toordinal()
+
+
+class AuditContext:
+    """The audited tree and the configuration it was produced under.
+
+    Args:
+        root: the workflow's working directory (holds results/ and the raw data paths of config).
+        config: the full config mapping (config.yaml plus any --config overrides).
+        ledger: the read ledger (one is created for `root` when omitted).
+    """
+
+    def __init__(self, *, root: Path | str, config: Mapping[str, Any], ledger: ReadLedger | None = None):
+        from dswm.config import Scenario
+        from dswm.runconfig import resolve
+
+        self.root = Path(root).resolve()
+        self.config = dict(config)
+        self.resolved = resolve(self.config)
+        self.profile = str(self.resolved["profile"])
+        self.datasets = list(self.resolved["run"]["datasets"])
+        self.methods = list(self.resolved["methods"]["run"])
+        self.scenario = Scenario.from_dict(self.config["scenario"])
+        self.results = self.root / "results"
+        self.ledger = ledger or ReadLedger(root=self.root, guarded=[self.root])
+        self._meta: dict[str, dict] = {}
+        self._tensor: dict[str, Any] = {}
+        self._raw: dict[str, Any] = {}
+
+    # ---- configuration-derived expectations -----------------------------------------------------------
+    def split_cfg(self, ds: str) -> dict[str, list]:
+        """{"train": [first, last], "test": [first, last]} of datasets.<ds>.split."""
+        return {k: list(v) for k, v in self.config["datasets"][ds]["split"].items()}
+
+    def calendar(self, ds: str) -> list[tuple[str, str]]:
+        """Expected (label, split) of every tensor day, from config alone: training segment then test."""
+        seg = self.split_cfg(ds)
+        return [(lab, s) for s in ("train", "test") for lab in label_range(*seg[s])]
+
+    def expected_split_of(self, ds: str) -> dict[str, str]:
+        """{label: "train"|"test"} from config."""
+        return dict(self.calendar(ds))
+
+    def train_index(self, ds: str) -> np.ndarray:
+        """Tensor day indices whose label config puts in the training segment (labels from meta.json)."""
+        want = self.expected_split_of(ds)
+        return np.array([d["index"] for d in self.meta(ds)["days"] if want.get(d["label"]) == "train"],
+                        dtype=np.int64)
+
+    def test_index(self, ds: str) -> np.ndarray:
+        """Tensor day indices whose label config puts in the test segment."""
+        want = self.expected_split_of(ds)
+        return np.array([d["index"] for d in self.meta(ds)["days"] if want.get(d["label"]) == "test"],
+                        dtype=np.int64)
+
+    def seeds(self, ds: str) -> list[int]:
+        return [int(s) for s in self.resolved["run"]["seeds"][ds]]
+
+    def jobs(self) -> list[tuple[str, str, int]]:
+        """Every (dataset, method, seed) of the selected profile."""
+        return [(ds, m, s) for ds in self.datasets for m in self.methods for s in self.seeds(ds)]
+
+    def learns(self, method: str) -> bool:
+        """Whether the method trains (its class declares `learns = True`)."""
+        from dswm.controllers import controller_class
+
+        return bool(getattr(controller_class(method, self.resolved), "learns", False))
+
+    @cached_property
+    def percentile(self) -> float:
+        return float(self.config["datasets"]["common"]["norm_percentile"])
+
+    @cached_property
+    def kappa_reference(self) -> str:
+        return str(self.config["datasets"]["common"]["kappa_reference"])
+
+    # ---- paths ----------------------------------------------------------------------------------------
+    def data_dir(self, ds: str) -> Path:
+        return self.results / "data" / ds
+
+    def meta_path(self, ds: str) -> Path:
+        return self.data_dir(ds) / "meta.json"
+
+    def tensor_path(self, ds: str) -> Path:
+        return self.data_dir(ds) / "demand.parquet"
+
+    def run_dir(self, ds: str, method: str, seed: int) -> Path:
+        return self.results / ds / method / f"seed{seed}"
+
+    def rel(self, path: Path | str) -> str:
+        return self.ledger.rel(path)
+
+    # ---- prepared data --------------------------------------------------------------------------------
+    def meta(self, ds: str) -> dict:
+        """meta.json of a prepared dataset (read once, through the ledger)."""
+        if ds not in self._meta:
+            try:
+                self._meta[ds] = self.ledger.read_json(self.meta_path(ds))
+            except (FileNotFoundError, ValueError) as exc:
+                raise AuditInputError(f"{self.rel(self.meta_path(ds))}: cannot read ({exc})") from exc
+        return self._meta[ds]
+
+    def tensor(self, ds: str):
+        """The prepared tensor as the environment sees it (prep.tensor.load)."""
+        if ds not in self._tensor:
+            from prep.tensor import load
+
+            try:
+                self.ledger.track(self.meta_path(ds))
+                self.ledger.track(self.tensor_path(ds))
+                self._tensor[ds] = load(self.data_dir(ds))
+            except (FileNotFoundError, ValueError) as exc:
+                raise AuditInputError(f"{self.rel(self.tensor_path(ds))}: cannot load ({exc})") from exc
+        return self._tensor[ds]
+
+    # ---- raw data -------------------------------------------------------------------------------------
+    def raw_candidates(self, ds: str) -> list[Path]:
+        """Files that may be the raw inputs: the demo tree results/raw/<ds>/ or config's raw_files."""
+        meta = self.meta(ds)
+        if meta.get("source") == "demo":
+            base = self.results / "raw" / ds
+            return sorted(p for p in base.rglob("*") if p.is_file()) if base.is_dir() else []
+        out: list[Path] = []
+        for pat in self.config["datasets"][ds].get("raw_files", []):
+            p = Path(pat) if Path(pat).is_absolute() else self.root / pat
+            out.extend(sorted(p.parent.glob(p.name)) if any(c in p.name for c in "*?[") else [p])
+        return [p for p in out if p.is_file()]
+
+    def raw_paths(self, ds: str) -> list[Path]:
+        """The raw files meta.json names as its sources, located and checked by size and SHA-256.
+
+        Raises:
+            AuditInputError: a recorded source is missing, or its bytes differ from the recorded hash.
+        """
+        meta = self.meta(ds)
+        by_name: dict[str, list[Path]] = {}
+        for p in self.raw_candidates(ds):
+            by_name.setdefault(p.name, []).append(p)
+        out = []
+        for src in meta.get("sources", []):
+            hits = by_name.get(src["name"], [])
+            if not hits:
+                raise AuditInputError(f"{self.rel(self.meta_path(ds))}: source {src['name']!r} is not among the "
+                                      f"raw files of {ds} (looked in {'results/raw/' + ds if meta.get('source') == 'demo' else 'datasets.' + ds + '.raw_files'})")
+            fp = [self.ledger.before[self.ledger.track(h)] for h in hits]
+            match = [h for h, f in zip(hits, fp) if f.sha256 == src["sha256"] and f.bytes == src["bytes"]]
+            if not match:
+                raise AuditInputError(f"{self.rel(hits[0])}: SHA-256 {fp[0].sha256[:16]}.. / {fp[0].bytes} bytes "
+                                      f"differ from the source recorded in {self.rel(self.meta_path(ds))} "
+                                      f"({src['sha256'][:16]}.. / {src['bytes']} bytes)")
+            out.append(match[0])
+        if not out:
+            raise AuditInputError(f"{self.rel(self.meta_path(ds))}: no source files recorded")
+        return out
+
+    def raw(self, ds: str):
+        """The dataset's crop in raw units, rebuilt from its raw files by the `prep` readers (all days).
+
+        Returns:
+            prep.tensor.RawTensor (values (D, 144, R, C) float64).
+        """
+        if ds not in self._raw:
+            from prep.config import dataset_config
+
+            paths = self.raw_paths(ds)
+            try:
+                module = importlib.import_module(f"prep.{ds}")
+                self._raw[ds] = module.build(dataset_config(self.config, ds), paths)
+            except (ImportError, ValueError, OSError) as exc:
+                raise AuditInputError(f"{ds}: rebuilding the raw crop from {[self.rel(p) for p in paths][:3]} "
+                                      f"failed ({exc})") from exc
+        return self._raw[ds]

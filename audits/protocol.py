@@ -1,0 +1,245 @@
+"""Protocol family: every method is measured in the same world, and learners learn from training days only.
+
+* `check_hashes`: every result file of every method carries one observation-spec hash, one eval-days hash
+  and one scenario hash, each equal to the value recomputed from config.yaml and meta.json.
+* `check_result_days`: every result file holds exactly the configured ID and OOD days of its dataset.
+* `check_training_days`: every learning method's training manifest records the day of its pre-collected or
+  replayed data, and every such day is a training day.
+* `check_checkpoints`: no checkpoint was written after training ended (when evaluation starts reading
+  test-day data), and training declares that it read no test data.
+"""
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import polars as pl
+
+from audits.context import AuditContext, AuditInputError
+from audits.hashes import expected_hashes, expected_result_days
+from audits.report import Check
+
+HASH_COLUMNS = ("obs_spec_hash", "eval_days_hash", "scenario_hash")
+RESULT_COLUMNS = ("day", "label", "split", "sr_mean", *HASH_COLUMNS, "seed", "method", "dataset")
+CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt", ".safetensors")
+CLOCK_SLACK_S = 1.0
+"""checkpoint_written_at is recorded to the second: a file time within 1 s of it is the same write."""
+HASH_LEAK = {"obs_spec_hash": "a different observation spec", "eval_days_hash": "different eval days",
+                    "scenario_hash": "different scenario constants"}
+
+
+def _read_result(ctx: AuditContext, path: Path) -> pl.DataFrame:
+    try:
+        return pl.read_parquet(ctx.ledger.track(path))
+    except FileNotFoundError as exc:
+        raise AuditInputError(f"{ctx.rel(path)}: result file missing (run the evaluate rule)") from exc
+    except (OSError, pl.exceptions.PolarsError) as exc:
+        raise AuditInputError(f"{ctx.rel(path)}: unreadable ({exc})") from exc
+
+
+def result_path(ctx: AuditContext, ds: str, method: str, seed: int) -> Path:
+    return ctx.run_dir(ds, method, seed) / "days.parquet"
+
+
+def check_hashes(ctx: AuditContext) -> Check:
+    """Same observation-spec, eval-days and scenario hashes in every result file, equal to the recomputed ones."""
+    chk = Check(id="protocol.hashes", family="protocol",
+                claim="Every result file of every method carries the observation-spec, eval-days and scenario "
+                      "hashes recomputed from config.yaml and meta.json (one value per file).")
+    for ds in ctx.datasets:
+        try:
+            want = expected_hashes(ctx, ds)
+        except AuditInputError as exc:
+            chk.fail(f"{exc} — the expected hashes cannot be recomputed")
+            continue
+        seen: dict[str, dict[str, list[str]]] = {c: {} for c in HASH_COLUMNS}
+        for method in ctx.methods:
+            for seed in ctx.seeds(ds):
+                path = result_path(ctx, ds, method, seed)
+                try:
+                    df = _read_result(ctx, path)
+                except AuditInputError as exc:
+                    chk.fail(str(exc))
+                    continue
+                missing = [c for c in RESULT_COLUMNS if c not in df.columns]
+                if missing:
+                    chk.fail(f"{ctx.rel(path)}: lacks column(s) {missing}")
+                    continue
+                for col in ("dataset", "method", "seed"):
+                    vals = sorted(set(map(str, df[col].to_list())))
+                    own = {"dataset": ds, "method": method, "seed": str(seed)}[col]
+                    if vals != [own]:
+                        chk.fail(f"{ctx.rel(path)}: column {col} holds {vals}, the path says {own!r}")
+                for col in HASH_COLUMNS:
+                    vals = sorted(set(map(str, df[col].to_list())))
+                    for v in vals:
+                        seen[col].setdefault(v, []).append(f"{method}/seed{seed}")
+                    if vals != [want[col]]:
+                        chk.fail(f"{ctx.rel(path)}: {col} = {vals}, expected {want[col]} (recomputed from "
+                                 f"config.yaml and {ctx.rel(ctx.meta_path(ds))}) — {method} was run with "
+                                 f"{HASH_LEAK[col]}")
+        chk.evidence[ds] = {"expected": want, "found": {c: {v: len(w) for v, w in s.items()} for c, s in seen.items()}}
+    return chk
+
+
+def check_result_days(ctx: AuditContext) -> Check:
+    """Every result file evaluates exactly its dataset's configured ID and OOD days."""
+    chk = Check(id="protocol.result_days", family="protocol",
+                claim="Every result file holds exactly the configured ID and OOD days (as limited by the "
+                      "profile), with their labels, and nothing else.")
+    for ds in ctx.datasets:
+        try:
+            want = expected_result_days(ctx, ds)
+            labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
+        except AuditInputError as exc:
+            chk.fail(f"{exc} — the evaluated days cannot be verified")
+            continue
+        for method in ctx.methods:
+            for seed in ctx.seeds(ds):
+                path = result_path(ctx, ds, method, seed)
+                try:
+                    df = _read_result(ctx, path)
+                except AuditInputError as exc:
+                    chk.fail(str(exc))
+                    continue
+                if not {"day", "split"} <= set(df.columns):
+                    chk.fail(f"{ctx.rel(path)}: lacks the day/split columns")
+                    continue
+                splits = sorted(set(df["split"].to_list()) - set(want))
+                if splits:
+                    chk.fail(f"{ctx.rel(path)}: unknown split value(s) {splits}; expected id, ood")
+                for split, days in want.items():
+                    got = sorted(int(d) for d in df.filter(pl.col("split") == split)["day"].to_list())
+                    if got != days:
+                        chk.fail(f"{ctx.rel(path)}: split {split!r} evaluates days "
+                                 f"{[labels.get(d, d) for d in got]}, the configured {split.upper()} days are "
+                                 f"{[labels[d] for d in days]} — {method} evaluated on other days")
+                if "label" in df.columns:
+                    wrong = [(int(d), lab) for d, lab in zip(df["day"].to_list(), df["label"].to_list())
+                             if labels.get(int(d)) != lab]
+                    if wrong:
+                        chk.fail(f"{ctx.rel(path)}: day index/label pairs {wrong[:3]} disagree with meta.json")
+        chk.evidence[ds] = {k: [labels[d] for d in v] for k, v in want.items()}
+    return chk
+
+
+def _manifest(ctx: AuditContext, ds: str, method: str, seed: int) -> tuple[Path, dict]:
+    path = ctx.run_dir(ds, method, seed) / "train_manifest.json"
+    try:
+        return path, ctx.ledger.read_json(path)
+    except FileNotFoundError as exc:
+        raise AuditInputError(f"{ctx.rel(path)}: training manifest missing for learning method {method}") from exc
+    except ValueError as exc:
+        raise AuditInputError(f"{ctx.rel(path)}: not valid JSON ({exc})") from exc
+
+
+def learning_jobs(ctx: AuditContext) -> list[tuple[str, str, int]]:
+    """(dataset, method, seed) of every learning method of the profile."""
+    learners = [m for m in ctx.methods if ctx.learns(m)]
+    return [(ds, m, s) for ds in ctx.datasets for m in learners for s in ctx.seeds(ds)]
+
+
+def check_training_days(ctx: AuditContext) -> Check:
+    """Every learning method records the day of its training data, and all of them are training days."""
+    chk = Check(id="protocol.training_days", family="protocol",
+                claim="Every learning method's training manifest records the tensor day of every pre-collected or "
+                      "replayed transition, and every one of them is a training day.")
+    learners = learning_jobs(ctx)
+    chk.evidence["learning_jobs"] = [f"{d}/{m}/seed{s}" for d, m, s in learners]
+    for ds, method, seed in learners:
+        try:
+            path, man = _manifest(ctx, ds, method, seed)
+            labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
+            train = set(ctx.train_index(ds).tolist())
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        where = ctx.rel(path)
+        days = man.get("days")
+        if not isinstance(days, list) or not days:
+            chk.fail(f"{where}: 'days' is {days!r}; expected the tensor day of every transition or sequence used")
+            continue
+        days = [int(d) for d in days]
+        leaked = sorted(set(d for d in days if d not in train))
+        if leaked:
+            chk.fail(f"{where}: training data holds day(s) {[labels.get(d, d) for d in leaked]} (indices {leaked}) "
+                     f"that are not training days — the replay/pre-collected data of {method} holds "
+                     f"{'a test day' if all(d in labels for d in leaked) else 'unknown days'}")
+        if "day_labels" in man and [labels.get(d) for d in days] != list(man["day_labels"]):
+            chk.fail(f"{where}: day_labels disagree with the labels meta.json gives the recorded day indices")
+        per = man.get("transitions_per_day_episode")
+        n = man.get("n_transitions")
+        if per is not None and n is not None and int(n) != int(per) * len(days):
+            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} recorded day episodes x {per} = "
+                     f"{int(per) * len(days)} — some transitions have no recorded day")
+        if per is None and n is not None and int(n) != len(days):
+            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} days are recorded (one per transition "
+                     f"expected)")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {"records": len(days), "distinct_days": len(set(days)),
+                                                     "training_days_covered": f"{len(set(days) & train)}/{len(train)}",
+                                                     "n_transitions": n}
+    return chk
+
+
+def _parse_utc(text: str) -> float:
+    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc).timestamp()
+
+
+def check_checkpoints(ctx: AuditContext) -> Check:
+    """No checkpoint written after training ended; training declares no test data read."""
+    chk = Check(id="protocol.checkpoints", family="protocol",
+                tolerance=f"file times within {CLOCK_SLACK_S:g} s (checkpoint_written_at is recorded to the second)",
+                claim="Every learning run's checkpoints were written before its training manifest closed (before any "
+                      "evaluation read test-day data), the recorded checkpoint is the file on disk, and training "
+                      "declares it read no test data.")
+    for ds, method, seed in learning_jobs(ctx):
+        try:
+            mpath, man = _manifest(ctx, ds, method, seed)
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        where, run = ctx.rel(mpath), ctx.run_dir(ds, method, seed)
+        if man.get("read_test_data") is not False:
+            chk.fail(f"{where}: read_test_data = {man.get('read_test_data')!r}; expected false — training read "
+                     f"test-day data")
+        closed = mpath.stat().st_mtime
+        ck = man.get("checkpoint")
+        ev: dict = {"manifest_closed": closed}
+        if not ck:
+            chk.fail(f"{where}: no checkpoint recorded")
+        else:
+            cpath = Path(ck) if Path(ck).is_absolute() else ctx.root / ck
+            if not cpath.is_file():
+                chk.fail(f"{where}: recorded checkpoint {ck} does not exist")
+            else:
+                ctx.ledger.track(cpath)
+                written = cpath.stat().st_mtime
+                ev["checkpoint_mtime"] = written
+                rec = man.get("checkpoint_written_at")
+                try:
+                    rec_t = _parse_utc(str(rec))
+                except ValueError:
+                    chk.fail(f"{where}: checkpoint_written_at = {rec!r}; expected YYYY-MM-DDTHH:MM:SSZ")
+                    rec_t = None
+                if rec_t is not None and not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
+                    chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
+                             f"checkpoint was rewritten after training ended")
+        for f in sorted(run.iterdir()) if run.is_dir() else []:
+            if f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
+                chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
+                         f"at {_iso(closed)} — a checkpoint written after reading test-day data")
+        result = result_path(ctx, ds, method, seed)
+        if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
+            chk.fail(f"{ctx.rel(result)}: written before its training manifest closed — the evaluation did not "
+                     f"use the final checkpoint")
+        files = [str(p) for p in man.get("data_files_read", [])]
+        bad = [p for p in files if Path(p).name in ("days.parquet", "trajectory.npz")]
+        if bad:
+            chk.fail(f"{where}: training read evaluation output(s) {bad}")
+        ev["data_files_read"] = files
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = ev
+    return chk
+
+
+def _iso(t: float) -> str:
+    return dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
