@@ -97,21 +97,29 @@ def _yjmob_raw(cfg: dict, out: Path, rng: np.random.Generator) -> Path:
     return path
 
 
-def prepare(cfg: dict, root: Path) -> None:
-    """Writes results/data/{milan,yjmob}/demand.parquet + meta.json with the real prep functions."""
+def prepare(cfg: dict, root: Path, *, only: str | None = None) -> None:
+    """Writes results/data/<dataset>/demand.parquet + meta.json with the real prep functions.
+
+    Args:
+        cfg: the fixture config; root: the tree; only: prepare this dataset alone (the reference dataset's
+            training mean is then read back from its meta.json).
+    """
     from prep import milan, tensor, yjmob
     from prep.config import common_config, dataset_config
     from prep.days import pick_eval_days
 
     common = common_config(cfg)
-    ref = None
+    ref_meta = root / "results" / "data" / common.kappa_reference / "meta.json"
+    ref = json.loads(ref_meta.read_text())["train_mean_normalized"] if only and ref_meta.is_file() else None
     for name, module in (("milan", milan), ("yjmob", yjmob)):
+        if only is not None and name != only:
+            continue
         dcfg = dataset_config(cfg, name)
         paths = sorted((root / "results" / "raw" / name / "demo").iterdir())
         raw = module.build(dcfg, paths)
         ev = pick_eval_days(raw.days, raw.weekend, dcfg.eval_days, dataset=name)
         demand, meta = tensor.finalize(raw, common=common, cfg=dcfg, source="demo", eval_days=ev,
-                                       reference_mean=ref)
+                                       reference_mean=None if name == common.kappa_reference else ref)
         tensor.write(root / "results" / "data" / name, demand, meta)
         if name == common.kappa_reference:
             ref = meta["train_mean_normalized"]

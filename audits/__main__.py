@@ -1,0 +1,42 @@
+"""Command line: `python -m audits [--root DIR] [--config config.yaml] [--profile NAME] [--out results/audit]`.
+
+Runs the audit outside Snakemake, writes report.json and report.md, and exits 1 when any check fails.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from audits.report import to_markdown, write_report
+from audits.runner import run_audit
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Runs the audit; returns the exit status (0 pass, 1 a check failed)."""
+    ap = argparse.ArgumentParser(prog="python -m audits", description=__doc__.splitlines()[0])
+    ap.add_argument("--root", default=".", help="the workflow's working directory (holds results/)")
+    ap.add_argument("--config", default="config.yaml", help="config file the pipeline ran under (YAML or JSON)")
+    ap.add_argument("--profile", default=None, help="override the config's profile (as --config profile=NAME)")
+    ap.add_argument("--out", default=None, help="report directory (default: <root>/results/audit)")
+    args = ap.parse_args(argv)
+    import yaml
+
+    root = Path(args.root)
+    cfg_path = Path(args.config) if Path(args.config).is_absolute() else root / args.config
+    with open(cfg_path, "r", encoding="utf-8") as fh:
+        config = yaml.safe_load(fh)
+    if args.profile:
+        config["profile"] = args.profile
+    report = run_audit(root=root, config=config, extra_reads=[cfg_path])
+    out = Path(args.out) if args.out else root / "results" / "audit"
+    write_report(report, json_path=out / "report.json", md_path=out / "report.md")
+    if not report["passed"]:
+        sys.stderr.write(to_markdown(report).split("## Evidence")[0])
+    return 0 if report["passed"] else 1
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    sys.exit(main())

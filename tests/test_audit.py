@@ -1,0 +1,211 @@
+"""Mutation tests of the leakage audit: a clean tree passes; each leak turns its own check red.
+
+The clean tree (audits.testing.build_clean_tree) holds raw files in the published Milan and YJMob formats,
+tensors prepared by the real `prep` functions, result files, a training manifest and a checkpoint. Each test
+copies it, plants one leak the way a faulty pipeline would, and asserts that the check for that leak fails
+with a message naming the file and the leak.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import datetime as dt
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from audits import derived, protocol, splits, statistics
+from audits.__main__ import main
+from audits.context import AuditContext
+from audits.testing import T0, build_clean_tree, prepare, write_results, write_training
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    root = tmp_path_factory.mktemp("clean")
+    return root, build_clean_tree(root)
+
+
+@pytest.fixture
+def tree(clean, tmp_path):
+    """A private copy of the clean tree (file times kept) and its config."""
+    root, cfg = clean
+    dst = tmp_path / "tree"
+    shutil.copytree(root, dst)
+    return dst, copy.deepcopy(cfg)
+
+
+def run(root: Path, cfg: dict, check):
+    return check(AuditContext(root=root, config=cfg))
+
+
+def tree_hashes(root: Path) -> dict[str, tuple[str, int]]:
+    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def milan_train_p99_from_raw(root: Path) -> float:
+    """The 99th percentile of internet summed over country codes, training files only (parsed here)."""
+    frames = []
+    for p in sorted((root / "results/raw/milan/demo").glob("*2013-11-*.txt")):
+        frames.append(pl.read_csv(p, separator="\t", has_header=False, new_columns=[
+            "sq", "t", "cc", "a", "b", "c", "d", "internet"], schema_overrides={"internet": pl.Float64}))
+    df = pl.concat(frames).group_by("sq", "t").agg(pl.col("internet").fill_null(0).sum())
+    assert df.height == 4 * 144 * 25  # every square and slot of the 4 training days is present
+    return float(np.percentile(df["internet"].to_numpy(), 99))
+
+
+def test_clean_tree_passes_and_nothing_changes(clean, tmp_path):
+    root, _ = clean
+    before = tree_hashes(root)
+    out = tmp_path / "report"
+    assert main(["--root", str(root), "--config", "config.json", "--out", str(out)]) == 0
+    assert tree_hashes(root) == before
+    report = json.loads((out / "report.json").read_text())
+    assert report["passed"] and all(c["passed"] for c in report["checks"])
+    assert {c["family"] for c in report["checks"]} == {"splits", "statistics", "protocol", "read-only"}
+    read = {f["path"] for f in report["read_only"]["files"]}
+    assert {"results/data/milan/meta.json", "results/data/yjmob/demand.parquet",
+            "results/raw/yjmob/demo/yjmob100k-dataset1.csv.gz", "results/milan/dswm/seed0/train_manifest.json",
+            "config.json"} <= read
+    assert report["read_only"]["changed"] == [] and report["read_only"]["write_attempts"] == []
+    p99 = next(c for c in report["checks"] if c["id"] == "statistics.p99")["evidence"]["milan"]
+    assert p99["train"] == pytest.approx(milan_train_p99_from_raw(root), rel=1e-9)
+    assert p99["stored"] == pytest.approx(p99["train"], rel=1e-9) and p99["all_days"] > 1.2 * p99["train"]
+    assert "# Leakage audit: PASS" in (out / "report.md").read_text()
+
+
+def test_test_day_moved_into_training(tree):
+    root, cfg = tree
+    meta_path = root / "results/data/milan/meta.json"
+    meta = json.loads(meta_path.read_text())
+    first_test = next(d for d in meta["days"] if d["split"] == "test")
+    first_test["split"] = "train"
+    meta_path.write_text(json.dumps(meta))
+    chk = run(root, cfg, splits.check_segments)
+    assert not chk.passed
+    assert any("results/data/milan/meta.json" in m and "2013-12-21" in m and "a test day moved into training" in m
+               for m in chk.failures), chk.failures
+
+
+def test_p99_computed_on_all_days(tree, monkeypatch):
+    root, cfg = tree
+    import prep.stats
+
+    real = prep.stats.percentile
+    monkeypatch.setattr(prep.stats, "percentile", lambda v, idx, q: real(v, np.arange(v.shape[0]), q))
+    prepare(cfg, root, only="milan")
+    chk = run(root, cfg, statistics.check_p99)
+    assert any("results/data/milan/meta.json" in m and "p99 computed on all days" in m for m in chk.failures), \
+        chk.failures
+    tensor = run(root, cfg, statistics.check_tensor)
+    assert any("results/data/milan/demand.parquet" in m and "p99 over all days" in m for m in tensor.failures)
+    assert all("yjmob" not in m for m in chk.failures + tensor.failures)
+
+
+def test_kappa_from_test_segment(tree, monkeypatch):
+    root, cfg = tree
+    import prep.stats
+
+    real = prep.stats.mean_of
+    test_idx = np.arange(10, 16)  # YJMob days d10..d15 are the fixture's test segment
+    monkeypatch.setattr(prep.stats, "mean_of", lambda v, idx: real(v, test_idx))
+    prepare(cfg, root, only="yjmob")
+    chk = run(root, cfg, statistics.check_kappa)
+    assert any("results/data/yjmob/meta.json" in m and "kappa from the test segment" in m for m in chk.failures), \
+        chk.failures
+    assert all("milan" not in m.split(":")[0] for m in chk.failures)
+
+
+def test_method_evaluated_on_other_days(tree):
+    root, cfg = tree
+    labels = [d["label"] for d in json.loads((root / "results/data/milan/meta.json").read_text())["days"]]
+    other = labels.index("2013-12-26")  # a test day that is neither an ID nor an OOD day
+    write_results(cfg, root, "milan", "greedy", 0, days_override={"id": [4, 5, other], "ood": [7, 8]})
+    chk = run(root, cfg, protocol.check_result_days)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert "results/milan/greedy/seed0/days.parquet" in msg and "greedy evaluated on other days" in msg
+    assert "2013-12-26" in msg and "2013-12-23" in msg
+
+
+def test_different_observation_spec_for_one_method(tree):
+    root, cfg = tree
+    from dswm.config import Scenario
+    from dswm.env import Grid, obs_spec_hash
+
+    scenario = Scenario.from_dict(cfg["scenario"])
+    other = obs_spec_hash(Grid(rows=5, cols=5, cell_m=500.0), dataclasses.replace(scenario, obs_window=4))
+    write_results(cfg, root, "yjmob", "greedy", 0, obs_hash=other)
+    chk = run(root, cfg, protocol.check_hashes)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert "results/yjmob/greedy/seed0/days.parquet" in msg and "a different observation spec" in msg
+    assert other in msg
+
+
+def test_replay_buffer_holds_a_test_day(tree):
+    root, cfg = tree
+    write_training(cfg, root, "milan", "dswm", 0, days=[0, 1, 2, 3, 5, 1])  # index 5 = 2013-12-22, a test day
+    chk = run(root, cfg, protocol.check_training_days)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert "results/milan/dswm/seed0/train_manifest.json" in msg and "holds a test day" in msg
+    assert "2013-12-22" in msg
+
+
+def test_checkpoint_written_after_training_ended(tree):
+    root, cfg = tree
+    ckpt = root / "results/yjmob/dswm/seed0/checkpoint.pt"
+    ckpt.write_bytes(b"rewritten during evaluation")
+    os.utime(ckpt, (T0 + 15, T0 + 15))  # after the manifest (T0 + 10), before the results (T0 + 20)
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert any("results/yjmob/dswm/seed0/checkpoint.pt" in m and "after" in m for m in chk.failures), chk.failures
+    assert len([m for m in chk.failures if "milan" in m]) == 0
+
+
+def test_initial_positions_from_all_days(tree):
+    root, cfg = tree
+    from dswm.config import Scenario
+    from dswm.env import Grid, initial_positions
+    from prep.tensor import load
+
+    scenario = Scenario.from_dict(cfg["scenario"])
+    t = load(root / "results/data/milan")
+    grid = Grid(rows=5, cols=5, cell_m=235.0)
+    train = initial_positions(t.demand[t.train_days].mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
+    alld = initial_positions(t.demand.mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
+    assert np.abs(alld - train).max() > 50.0  # the fixture's test days move demand east
+    path = root / "results/milan/static/seed0/trajectory.npz"
+    np.savez(path, positions=np.repeat(alld[None, None], 144, axis=1))
+    chk = run(root, cfg, derived.check_initial_positions)
+    assert any("results/milan/static/seed0/trajectory.npz" in m and "ALL-DAYS" in m for m in chk.failures), \
+        chk.failures
+
+
+def test_calibration_record_with_test_days(tree):
+    root, cfg = tree
+    rec_path = root / "results/calibration/milan.json"
+    rec = json.loads(rec_path.read_text())
+    rec["days"] = rec["days"] + [4]
+    rec_path.write_text(json.dumps(rec))
+    chk = run(root, cfg, derived.check_calibration)
+    assert any("results/calibration/milan.json" in m and "2013-12-21" in m for m in chk.failures), chk.failures
+
+
+def test_full_audit_exits_nonzero_and_names_the_leak(tree, tmp_path):
+    root, cfg = tree
+    write_training(cfg, root, "yjmob", "dswm", 0, days=[0, 1, 12])
+    out = tmp_path / "report"
+    assert main(["--root", str(root), "--config", "config.json", "--out", str(out)]) == 1
+    report = json.loads((out / "report.json").read_text())
+    failed = [c["id"] for c in report["checks"] if not c["passed"]]
+    assert failed == ["protocol.training_days"]
+    md = (out / "report.md").read_text()
+    assert "# Leakage audit: FAIL" in md and "results/yjmob/dswm/seed0/train_manifest.json" in md and "d12" in md
