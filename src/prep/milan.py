@@ -64,7 +64,7 @@ def read_raw(paths: Sequence[Path | str], squares: Sequence[int] | None = None, 
         for line0, df in iter_csv_batches(path, names=COLUMNS, types=_TYPES, has_header=False, delimiter="\t"):
             df = _check_batch(path, line0, df, n_squares, time_ranges, on_out_of_range, counts)
             if keep is not None:
-                df = df.filter(pl.col("square_id").is_in(keep))
+                df = df.filter(pl.col("square_id").is_in(keep.implode()))
             parts.append(df.group_by("square_id", "time_interval_ms").agg(pl.col("internet").sum()))
     if not parts:
         return pl.DataFrame(schema={"square_id": pl.Int64, "time_interval_ms": pl.Int64, "internet": pl.Float64})
@@ -151,8 +151,9 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
     df = read_raw(selected, squares=ids.tolist(), n_squares=cfg.full_rows * cfg.full_cols,
                   time_ranges=_segment_ranges(days, tz), on_out_of_range=cfg.on_out_of_range, dropped=dropped)
     if df.height == 0:
-        raise PrepError(f"milan: the crop {crop} holds no line in the {len(selected)} selected files "
-                        f"(expected square ids {ids.min()}..{ids.max()})")
+        raise PrepError(f"milan: the crop (grid rows {crop.first_row}..{crop.first_row + crop.rows - 1}, columns "
+                        f"{crop.first_col}..{crop.first_col + crop.cols - 1}) holds no line in the {len(selected)} "
+                        f"selected file(s) {[p.name for p in selected][:3]}; expected square ids {ids.min()}..{ids.max()}")
     local = pl.from_epoch(df["time_interval_ms"], time_unit="ms").dt.replace_time_zone("UTC") \
         .dt.convert_time_zone(cfg.timezone)
     epoch_day = local.dt.date().cast(pl.Int64).to_numpy()

@@ -117,7 +117,8 @@ def _column_names(path: Path, expected: Sequence[str], has_header: bool, delimit
         with _open_stream(path) as s:
             first = s.read(1 << 16).split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r")
     except (OSError, EOFError) as exc:
-        raise PrepError(f"{path}: cannot read the header ({exc})") from exc
+        raise _explain(path, exc, column_names=list(expected), types={}, has_header=True,
+                       delimiter=delimiter) from exc
     found = [_norm(n) for n in first.split(delimiter)]
     missing = [n for n in expected if _norm(n) not in found]
     if missing:

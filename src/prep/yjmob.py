@@ -57,15 +57,15 @@ def iter_records(path: Path | str, *, full_size: int = 200, masked_value: int = 
             bad = (df[col] < lo) | ((df[col] > hi) if hi is not None else False)
             i = first_bad(bad)
             if i is not None:
-                raise PrepError(f"{path}, line {line0 + i}, column {col!r}: expected {lo}.."
-                                f"{hi if hi is not None else ''}, found {df[col][i]}")
+                want = f"an integer in {lo}..{hi}" if hi is not None else f"an integer >= {lo}"
+                raise PrepError(f"{path}, line {line0 + i}, column {col!r}: expected {want}, found {df[col][i]}")
         masked = (df["x"] == masked_value) & (df["y"] == masked_value)
         counts["masked_999"] = counts.get("masked_999", 0) + int(masked.sum())
         df = df.filter(~masked)
         checks = [("cell_outside_grid", ~(df["x"].is_between(1, full_size) & df["y"].is_between(1, full_size)),
                    f"expected x, y in 1..{full_size} (or both {masked_value} = masked)", "x")]
         if allowed is not None:
-            checks.append(("outside_segments", ~df["d"].is_in(allowed),
+            checks.append(("outside_segments", ~df["d"].is_in(allowed.implode()),
                            "expected a day inside a configured segment (datasets.yjmob.split)", "d"))
         for reason, bad, expected, col in checks:
             i = first_bad(bad)

@@ -125,6 +125,7 @@ def generate(cfg: ShanghaiConfig, out_dir: Path) -> list[Path]:
             pl.col("start").dt.strftime(TIME_FORMAT).alias("start time"),
             pl.col("end").dt.strftime(TIME_FORMAT).alias("end time"),
             "latitude", "longitude", "user id")
+        assert table.columns == list(COLUMNS)
         path = out_dir / file_name(lo, hi)
         with atomic_path(path) as tmp:
             _write_xlsx(tmp, table)
@@ -133,11 +134,11 @@ def generate(cfg: ShanghaiConfig, out_dir: Path) -> list[Path]:
 
 
 def _write_xlsx(path: Path, table: pl.DataFrame) -> None:
-    """One sheet, header row of the published column names, one row per session (blank cells for nulls)."""
+    """One sheet: a header row of the table's column names, one row per session (blank cells for nulls)."""
     wb = xlsxwriter.Workbook(str(path), {"constant_memory": True})
     wb.set_properties({"created": dt.datetime(2014, 12, 1)})  # fixed: identical bytes on every run
     ws = wb.add_worksheet("Sheet1")
-    ws.write_row(0, 0, list(COLUMNS))
+    ws.write_row(0, 0, table.columns)
     write_row = ws.write_row
     for i, row in enumerate(table.iter_rows(), start=1):
         write_row(i, 0, row)
