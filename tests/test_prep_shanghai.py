@@ -47,10 +47,10 @@ def test_xlsx_and_csv_give_the_same_cleaned_sessions_with_counts(tmp_path):
     table.write_csv(csv)
     results = []
     for path in (xlsx, csv):
-        dropped = {}
-        got = shanghai.read_raw([path], dropped=dropped)
-        assert dropped == {"missing_location": 1, "zero_location": 1, "end_before_start": 1,
-                           "crossing_midnight_kept": 1}
+        dropped, notes = {}, {}
+        got = shanghai.read_raw([path], dropped=dropped, notes=notes)
+        assert dropped == {"missing_location": 1, "zero_location": 1, "end_before_start": 1}
+        assert notes == {"crossing_midnight": 1}
         results.append(got)
     a, b = results
     assert a["user_id"].to_list() == ["a", "b", "f"] == b["user_id"].to_list()
@@ -123,6 +123,6 @@ def test_demo_dirt_is_counted_and_zero_cells_near_85_percent(tmp_path):
     assert raw.dropped["missing_location"] == n_missing > 0
     assert raw.dropped["zero_location"] == n_zero > 0
     assert raw.dropped["end_before_start"] == n_rev > 0
-    assert raw.dropped["crossing_midnight_kept"] > 0
+    assert raw.notes["crossing_midnight"] > 0
     # SPEC 4: about 85% zero cells after 470 m gridding and the trailing window.
     assert abs(stats.zero_cell_rate(raw.values) - 0.853) < 0.03

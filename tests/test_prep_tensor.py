@@ -15,9 +15,9 @@ from prep.pipeline import prepare_dataset
 from prep.tensor import load
 
 ROOT = Path(__file__).resolve().parents[1]
-META_KEYS = {"dataset", "source", "grid", "slots_per_day", "days", "split", "eval_days", "p99", "p99_all_days",
+META_KEYS = {"dataset", "source", "grid", "slots_per_day", "days", "split", "eval_days", "p99", "p99_all_days", "notes",
              "kappa", "kappa_reference_mean", "train_mean_normalized", "week", "zero_cell_rate", "top5_share", "crop",
-             "sources", "dropped", "config"}
+             "sources", "dropped", "config", "empty_days"}
 DAYS = ["2013-11-01", "2013-11-02", "2013-12-21", "2013-12-22"]  # 2 training days, 2 test days
 
 

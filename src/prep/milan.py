@@ -180,4 +180,4 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
                             "square id = grid_row*full_cols + grid_col + 1"},
         crop={"rule": "fixed", "first_row": crop.first_row, "first_col": crop.first_col,
               "rows": crop.rows, "cols": crop.cols},
-        dropped={**dropped, "files_outside_segments": skipped}, sources=describe_sources(selected))
+        dropped=dropped, notes={"files_skipped_outside_segments": skipped}, sources=describe_sources(selected))

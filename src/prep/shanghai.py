@@ -68,14 +68,15 @@ def _parse_time(col: pl.Series) -> pl.Series:
     return full.fill_null(frac)
 
 
-def iter_sessions(paths: Sequence[Path | str], *,
-                  dropped: dict[str, int] | None = None) -> Iterator[tuple[str, np.ndarray, pl.DataFrame]]:
+def iter_sessions(paths: Sequence[Path | str], *, dropped: dict[str, int] | None = None,
+                  notes: dict[str, int] | None = None) -> Iterator[tuple[str, np.ndarray, pl.DataFrame]]:
     """Streams cleaned sessions file by file (sheet by sheet, or batch by batch for CSV).
 
     Args:
         paths: .xlsx files or CSV exports with the published columns.
         dropped: counts of dropped rows by reason are added to it (missing_location, zero_location,
-            end_before_start); kept sessions crossing midnight are counted under crossing_midnight_kept.
+            end_before_start).
+        notes: counts of kept rows worth knowing are added to it (crossing_midnight: counted at their start).
     Yields:
         (where, rows, sessions): "file[, sheet]", (n,) row numbers in that file/sheet, DataFrame (user_id,
         start, end, latitude, longitude).
@@ -83,6 +84,7 @@ def iter_sessions(paths: Sequence[Path | str], *,
         PrepError: missing file or column, unparseable time, non-numeric coordinate, naming file and row.
     """
     counts = dropped if dropped is not None else {}
+    kept = notes if notes is not None else {}
     for path in tqdm([Path(p) for p in paths], desc="shanghai files", unit="file", leave=False):
         for where, row0, df in _raw_tables(path):
             start, end = _parse_time(df["start time"]), _parse_time(df["end time"])
@@ -112,16 +114,17 @@ def iter_sessions(paths: Sequence[Path | str], *,
             out = pl.DataFrame({"user_id": df["user id"], "start": start, "end": end, "latitude": lat,
                                 "longitude": lon}).filter(keep)
             crossing = (out["end"].dt.date() > out["start"].dt.date()).fill_null(False)
-            counts["crossing_midnight_kept"] = counts.get("crossing_midnight_kept", 0) + int(crossing.sum())
+            kept["crossing_midnight"] = kept.get("crossing_midnight", 0) + int(crossing.sum())
             yield where, row0 + np.flatnonzero(keep.to_numpy()), out
 
 
-def read_raw(paths: Sequence[Path | str], *, dropped: dict[str, int] | None = None) -> pl.DataFrame:
+def read_raw(paths: Sequence[Path | str], *, dropped: dict[str, int] | None = None,
+             notes: dict[str, int] | None = None) -> pl.DataFrame:
     """All cleaned sessions (user_id, start, end, latitude, longitude) of the given files.
 
     For the full dataset prefer `build`, which reduces each file to counts before reading the next.
     """
-    parts = [df for _, _, df in iter_sessions(paths, dropped=dropped)]
+    parts = [df for _, _, df in iter_sessions(paths, dropped=dropped, notes=notes)]
     return pl.concat(parts) if parts else pl.DataFrame(schema=_SESSION_SCHEMA)
 
 
@@ -163,8 +166,9 @@ def build(cfg: ShanghaiConfig, paths: Sequence[Path]) -> RawTensor:
     for d in days:
         lut[d.key.toordinal() - first_ord] = d.index
     dropped: dict[str, int] = {}
+    notes: dict[str, int] = {}
     parts = []
-    for where, rows, sessions in iter_sessions(paths, dropped=dropped):
+    for where, rows, sessions in iter_sessions(paths, dropped=dropped, notes=notes):
         lat, lon = sessions["latitude"].to_numpy(), sessions["longitude"].to_numpy()
         start_date = sessions["start"].dt.date()
         inside = grid.inside(lat, lon)
@@ -225,4 +229,4 @@ def build(cfg: ShanghaiConfig, paths: Sequence[Path]) -> RawTensor:
               "convention": "rows northward from lat_min, cols eastward from lon_min, local equirectangular"},
         crop={"rule": "densest_train", "first_row": r0, "first_col": c0, "rows": cfg.crop.rows,
               "cols": cfg.crop.cols, "train_starts": int(total), "window_slots": cfg.window_slots},
-        dropped=dropped, sources=describe_sources(list(paths)), empty_days=empty)
+        dropped=dropped, notes=notes, sources=describe_sources(list(paths)), empty_days=empty)

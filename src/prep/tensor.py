@@ -33,7 +33,8 @@ class RawTensor:
     values: (D, 144, rows, cols) float64, demand in the dataset's raw unit.
     weekday: per day, 0=Mon..6 (or the recovered week phase for YJMob); weekend: per day flag.
     grid: {rows, cols, cell_m, ...origin info}; crop: how the window was chosen; dropped: counts by reason;
-    sources: [{name, bytes, sha256}]; week: recovered week (YJMob) or None; empty_days: labels with no record.
+    sources: [{name, bytes, sha256}]; week: recovered week (YJMob) or None; empty_days: labels with no record;
+    notes: counts worth knowing that are not drops (kept sessions crossing midnight, files skipped unread).
     """
 
     dataset: str
@@ -47,6 +48,7 @@ class RawTensor:
     sources: list[dict]
     week: dict | None = None
     empty_days: list[str] = field(default_factory=list)
+    notes: dict[str, int] = field(default_factory=dict)
 
 
 def train_index(days: list[Day]) -> np.ndarray:
@@ -107,6 +109,7 @@ def finalize(raw: RawTensor, *, common: CommonPrep, cfg: DatasetConfig, source: 
         "sources": raw.sources,
         "dropped": {k: int(v) for k, v in sorted(raw.dropped.items())},
         "empty_days": raw.empty_days,
+        "notes": {k: int(v) for k, v in sorted(raw.notes.items())},
         "config": dataclasses.asdict(cfg),
     }
     return demand, meta
