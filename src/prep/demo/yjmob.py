@@ -60,8 +60,9 @@ def generate(cfg: YJMobConfig, out_dir: Path) -> list[Path]:
     masked_user = np.arange(u) >= int(round(u * (1 - demo.masked_user_frac)))
     p_slot = np.log(slot_profile(T))
     hour = (np.arange(T) + 0.5) * 24.0 / T
-    office = (hour >= 8.5) & (hour < 18.0)
-    night = (hour < 7.0) | (hour >= 21.0)
+    # Personal schedules (hours): office from ~9 to ~18, out of home from ~7 to ~21, each with a spread.
+    work_from, work_to = rng.normal(8.75, 0.75, u), rng.normal(18.0, 1.0, u)
+    out_from, out_to = rng.normal(7.0, 1.0, u), rng.normal(21.5, 1.25, u)
     parts = []
     for d in tqdm(range(cfg.n_days), desc="yjmob demo days", unit="day"):
         weekend = bool((d % 7) in demo.weekend_phases)
@@ -74,9 +75,12 @@ def generate(cfg: YJMobConfig, out_dir: Path) -> list[Path]:
         t = t[t < T]
         # Where each record is: home, work, hub or elsewhere (errands / leisure around the centre).
         r = rng.random(user.size)
-        at_work = employed[user] & office[t] & (r < 0.75) & (not weekend)
-        at_hub = ~at_work & ~night[t] & (r > 0.75) & (r < 0.75 + demo.hub_visit_frac * (2 if weekend else 1))
-        at_home = ~at_work & ~at_hub & (night[t] | (rng.random(user.size) < 0.5))
+        h = hour[t]
+        office = (h >= work_from[user]) & (h < work_to[user])
+        night = (h < out_from[user]) | (h >= out_to[user])
+        at_work = employed[user] & office & (r < 0.75) & (not weekend)
+        at_hub = ~at_work & ~night & (r > 0.75) & (r < 0.75 + demo.hub_visit_frac * (2 if weekend else 1))
+        at_home = ~at_work & ~at_hub & (night | (rng.random(user.size) < 0.5))
         x = np.where(at_home, home[user, 0], 0).astype(np.int16)
         y = np.where(at_home, home[user, 1], 0).astype(np.int16)
         x = np.where(at_work, work[user, 0], x)
