@@ -1,8 +1,9 @@
 """The hashes and evaluated days every result file must carry, recomputed from config.yaml and meta.json.
 
 The observation-spec hash comes from `dswm.env.obs_spec_hash` on the dataset grid of meta.json and the
-scenario of config.yaml, the scenario hash from `dswm.config.Scenario.hash`, the eval-days hash from the
-evaluated days of the profile (`dswm.evaluation`).
+scenario of config.yaml, the scenario hash from `dswm.config.Scenario.hash`, the eval-days hash from
+`dswm.evaluation.eval_days_hash` of the days config.yaml picks (cut to the profile's limit), never of the days
+a result file says it evaluated.
 """
 from __future__ import annotations
 
@@ -30,11 +31,11 @@ def expected_result_days(ctx: AuditContext, ds: str) -> dict[str, list[int]]:
 
 def expected_hashes(ctx: AuditContext, ds: str) -> dict[str, str]:
     """{"obs_spec_hash", "eval_days_hash", "scenario_hash"} a result file of dataset `ds` must carry."""
-    from dswm.config import stable_hash
     from dswm.env import obs_spec_hash
+    from dswm.evaluation import eval_days_hash
 
     days = expected_result_days(ctx, ds)
-    labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
-    eval_hash = stable_hash({"dataset": ds, **{k: [[d, labels[d]] for d in v] for k, v in days.items()}})
+    labels = [d["label"] for d in ctx.meta(ds)["days"]]
+    eval_hash = eval_days_hash(ds, days, labels)
     return {"obs_spec_hash": obs_spec_hash(_grid(ctx, ds), ctx.scenario), "eval_days_hash": eval_hash,
             "scenario_hash": ctx.scenario.hash()}

@@ -2,7 +2,7 @@
 
 * Initial positions: every result directory's `trajectory.npz` holds the fleet positions per slot of the
   days it traces; slot 0 of every traced day is the initial deployment p_0 (identical for every method).
-* Calibration: the record the `calibrate` rule writes (results/calibration/<dataset>.json).
+* Calibration: the record the `calibrate` rule writes (results/calibration/demand_intensity.json).
 """
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from audits.context import AuditContext, AuditInputError
+
+CALIBRATION_RECORD = "demand_intensity.json"
 
 
 def _slot0_arrays(arrays: dict[str, np.ndarray], k: int, slots: int) -> dict[str, np.ndarray]:
@@ -49,12 +51,16 @@ def recorded_initial_positions(ctx: AuditContext, ds: str) -> dict[str, np.ndarr
 
 
 def calibration_record(ctx: AuditContext) -> tuple[str, dict]:
-    """(path relative to the root, content) of the calibration record."""
-    ds = str(ctx.config.get("calibration", {}).get("dataset", "milan"))
-    path: Path = ctx.results / "calibration" / f"{ds}.json"
+    """(path relative to the root, content) of the calibration record.
+
+    Raises:
+        FileNotFoundError: the calibrate rule has not run (its record is optional: calibration is run by hand).
+        AuditInputError: the record is not valid JSON.
+    """
+    path: Path = ctx.results / "calibration" / CALIBRATION_RECORD
+    if not path.is_file():
+        raise FileNotFoundError(f"{ctx.rel(path)}: no calibration record (the calibrate rule has not run)")
     try:
         return ctx.rel(path), ctx.ledger.read_json(path)
-    except FileNotFoundError as exc:
-        raise AuditInputError(f"{ctx.rel(path)}: calibration record missing (run the calibrate rule)") from exc
     except ValueError as exc:
         raise AuditInputError(f"{ctx.rel(path)}: not valid JSON ({exc})") from exc

@@ -145,7 +145,8 @@ def check_training_days(ctx: AuditContext) -> Check:
                 claim="Every learning method's training manifest records the tensor day of every pre-collected or "
                       "replayed transition, and every one of them is a training day.")
     learners = learning_jobs(ctx)
-    chk.evidence["learning_jobs"] = [f"{d}/{m}/seed{s}" for d, m, s in learners]
+    chk.evidence["learning_jobs"] = ([f"{d}/{m}/seed{s}" for d, m, s in learners] or
+                                     "none: no method of methods.run learns, nothing to verify")
     for ds, method, seed in learners:
         try:
             path, man = _manifest(ctx, ds, method, seed)
@@ -224,8 +225,8 @@ def check_checkpoints(ctx: AuditContext) -> Check:
                 if rec_t is not None and not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
                     chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
                              f"checkpoint was rewritten after training ended")
-        for f in sorted(run.iterdir()) if run.is_dir() else []:
-            if f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
+        for f in sorted(run.rglob("*")) if run.is_dir() else []:
+            if f.is_file() and f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
                 chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
                          f"at {_iso(closed)} — a checkpoint written after reading test-day data")
         result = result_path(ctx, ds, method, seed)

@@ -48,7 +48,7 @@ class Check:
         return {**asdict(self), "passed": self.passed}
 
 
-def _write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str) -> None:
     """Writes text to a temp file beside `path`, then renames it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -123,5 +123,5 @@ def to_markdown(report: dict) -> str:
 
 def write_report(report: dict, *, json_path: Path, md_path: Path) -> None:
     """Writes report.json and report.md atomically."""
-    _write_atomic(Path(json_path), json.dumps(report, indent=2, sort_keys=True) + "\n")
-    _write_atomic(Path(md_path), to_markdown(report))
+    write_atomic(Path(json_path), json.dumps(report, indent=2, sort_keys=True) + "\n")
+    write_atomic(Path(md_path), to_markdown(report))

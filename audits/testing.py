@@ -34,6 +34,7 @@ def fixture_config() -> dict:
     cfg["profiles"]["smoke"] = {"datasets": ["milan", "yjmob"], "seeds": {"milan": [0], "yjmob": [0]},
                                 "eval_days": {"id": None, "ood": None}}
     cfg["methods"]["run"] = list(METHODS)
+    cfg["scenario"]["demand_intensity"] = 1000.0  # the tiny crops need a larger u for Static to serve ~0.8
     m = cfg["datasets"]["milan"]
     m["crop"] = {"first_row": 40, "first_col": 40, "rows": 5, "cols": 5}
     m["split"] = {"train": ["2013-11-01", "2013-11-04"], "test": ["2013-12-21", "2013-12-26"]}
@@ -98,85 +99,103 @@ def _yjmob_raw(cfg: dict, out: Path, rng: np.random.Generator) -> Path:
 
 
 def prepare(cfg: dict, root: Path, *, only: str | None = None) -> None:
-    """Writes results/data/<dataset>/demand.parquet + meta.json with the real prep functions.
+    """Writes results/data/<dataset>/demand.parquet + meta.json with the prepare rule's own function.
 
     Args:
-        cfg: the fixture config; root: the tree; only: prepare this dataset alone (the reference dataset's
-            training mean is then read back from its meta.json).
+        cfg: the fixture config; root: the tree; only: prepare this dataset alone.
     """
-    from prep import milan, tensor, yjmob
-    from prep.config import common_config, dataset_config
-    from prep.days import pick_eval_days
+    from prep.pipeline import prepare_dataset
 
-    common = common_config(cfg)
-    ref_meta = root / "results" / "data" / common.kappa_reference / "meta.json"
-    ref = json.loads(ref_meta.read_text())["train_mean_normalized"] if only and ref_meta.is_file() else None
-    for name, module in (("milan", milan), ("yjmob", yjmob)):
+    ref = cfg["datasets"]["common"]["kappa_reference"]
+    for name in ("milan", "yjmob"):
         if only is not None and name != only:
             continue
-        dcfg = dataset_config(cfg, name)
-        paths = sorted((root / "results" / "raw" / name / "demo").iterdir())
-        raw = module.build(dcfg, paths)
-        ev = pick_eval_days(raw.days, raw.weekend, dcfg.eval_days, dataset=name)
-        demand, meta = tensor.finalize(raw, common=common, cfg=dcfg, source="demo", eval_days=ev,
-                                       reference_mean=None if name == common.kappa_reference else ref)
-        tensor.write(root / "results" / "data" / name, demand, meta)
-        if name == common.kappa_reference:
-            ref = meta["train_mean_normalized"]
+        prepare_dataset(cfg, name, raw=[str(root / "results" / "raw" / name / "demo")],
+                        out_dir=root / "results" / "data" / name,
+                        reference_meta=None if name == ref else str(root / "results" / "data" / ref / "meta.json"))
 
 
-def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
-                  days_override: dict[str, list[int]] | None = None) -> Path:
-    """Writes days.parquet (+ trajectory.npz) of one job with the hashes a clean evaluation records."""
-    from dswm.config import Scenario, stable_hash
-    from dswm.env import Grid, initial_positions, obs_spec_hash
+def _hashes(cfg: dict, root: Path, ds: str):
+    from dswm.config import Scenario
+    from dswm.env import Grid, obs_spec_hash
+    from dswm.evaluation import eval_days, eval_days_hash
     from prep.tensor import load
 
     scenario = Scenario.from_dict(cfg["scenario"])
     t = load(root / "results" / "data" / ds)
     grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
-    labels = t.labels
-    ev = {k: list(map(int, t.eval_days(k))) for k in ("id", "ood")}
-    eval_hash = stable_hash({"dataset": ds, **{k: [[d, labels[d]] for d in v] for k, v in ev.items()}})
+    ev = eval_days(t, cfg["profiles"][cfg["profile"]]["eval_days"])
+    return scenario, t, grid, ev, {"obs_spec_hash": obs_spec_hash(grid, scenario),
+                                   "eval_days_hash": eval_days_hash(ds, ev, t.labels), "scenario_hash": scenario.hash()}
+
+
+def evaluate_static(cfg: dict, root: Path, ds: str, seed: int) -> Path:
+    """Evaluates Static with the pipeline's own evaluation (dswm.evaluation) and writes its result files."""
+    from dswm.baselines import StaticController
+    from dswm.evaluation import evaluate
+
+    scenario, t, _, _, _ = _hashes(cfg, root, ds)
+    res = evaluate(tensor=t, controller=StaticController(name="static", seed=seed), scenario=scenario, seed=seed,
+                   limits=cfg["profiles"][cfg["profile"]]["eval_days"], profile=cfg["profile"],
+                   progress_interval_s=60.0)
+    run = root / "results" / ds / "static" / f"seed{seed}"
+    run.mkdir(parents=True, exist_ok=True)
+    res.days.write_parquet(run / "days.parquet")
+    np.savez(run / "trajectory.npz", **res.trajectories)
+    for f in ("days.parquet", "trajectory.npz"):
+        os.utime(run / f, (T0 + 20, T0 + 20))
+    return run / "days.parquet"
+
+
+def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
+                  days_override: dict[str, list[int]] | None = None, init_pos: np.ndarray | None = None) -> Path:
+    """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes a clean
+    evaluation records (or the planted `obs_hash`, evaluated `days_override`, initial positions `init_pos`)."""
+    from dswm.evaluation import DAY_COLUMNS, initial_deployment
+
+    scenario, t, grid, ev, hashes = _hashes(cfg, root, ds)
+    if obs_hash is not None:
+        hashes["obs_spec_hash"] = obs_hash
     days = days_override or ev
-    rows = []
     rng = np.random.default_rng(seed)
-    for split, idx in days.items():
-        for d in idx:
-            rows.append({"day": d, "label": labels[d], "split": split, "sr_mean": float(rng.uniform(0.5, 0.9)),
-                         "energy_kj_per_slot": 1616.0, "energy_efficiency": 0.3, "jain": 0.8,
-                         "plan_ms_per_slot": 1.0, "obs_spec_hash": obs_hash or obs_spec_hash(grid, scenario),
-                         "eval_days_hash": eval_hash, "scenario_hash": scenario.hash(), "seed": seed,
-                         "method": method, "dataset": ds, "profile": cfg["profile"]})
+    rows = [{"day": d, "label": t.labels[d], "split": split, "sr_mean": float(rng.uniform(0.5, 0.9)),
+             "energy_kj_per_slot": 1616.0, "energy_efficiency": 0.3, "jain": 0.8, "plan_ms_per_slot": 1.0,
+             **hashes, "seed": seed, "method": method, "dataset": ds, "profile": cfg["profile"],
+             "data_source": "demo"} for split, idx in days.items() for d in idx]
     run = root / "results" / ds / method / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
-    pl.DataFrame(rows).write_parquet(run / "days.parquet")
-    init = initial_positions(t.demand[t.train_days].mean(axis=(0, 1)), grid, scenario.n_uavs,
-                             scenario.init.kmeans_seed)
-    traj = np.repeat(init[None, None], 144, axis=1).repeat(2, axis=0)  # (2 days, 144, K, 2)
-    np.savez(run / "trajectory.npz", positions=traj, days=np.array([ev["id"][0], ev["ood"][0]]))
+    pl.DataFrame(rows).select(DAY_COLUMNS).write_parquet(run / "days.parquet")
+    init = initial_deployment(t, grid, scenario) if init_pos is None else init_pos
+    traj = {}
+    for split in ("id", "ood"):
+        path = np.repeat(init[None], scenario.slots_per_day, axis=0).astype(np.float32)  # (T, K, 2)
+        traj.update({f"{split}_pos": path, f"{split}_status": np.zeros(path.shape[:2], dtype=np.int64),
+                     f"{split}_day": np.int64(ev[split][0]), f"{split}_label": np.str_(t.labels[ev[split][0]])})
+    np.savez(run / "trajectory.npz", **traj)
     for f in ("days.parquet", "trajectory.npz"):
         os.utime(run / f, (T0 + 20, T0 + 20))
     return run / "days.parquet"
 
 
 def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, days: list[int] | None = None) -> Path:
-    """Writes checkpoint.pt and train_manifest.json of one learning job (training days only by default)."""
+    """Writes what the train rule leaves for a learning job: train/checkpoint.pt, model.pt and
+    train_manifest.json (recording training days only unless `days` is given), in that order in time."""
     from prep.tensor import load
 
     t = load(root / "results" / "data" / ds)
     train = list(map(int, t.train_days))
     days = days if days is not None else train + train[:2]
     run = root / "results" / ds / method / f"seed{seed}"
-    run.mkdir(parents=True, exist_ok=True)
-    ckpt = run / "checkpoint.pt"
+    (run / "train").mkdir(parents=True, exist_ok=True)
+    ckpt, model = run / "train" / "checkpoint.pt", run / "model.pt"
     ckpt.write_bytes(b"fixture checkpoint " + method.encode())
+    model.write_bytes(b"fixture model " + method.encode())
     os.utime(ckpt, (T0, T0))
+    os.utime(model, (T0 + 5, T0 + 5))
     manifest = {"days": days, "day_labels": [t.labels[d] for d in days], "transitions_per_day_episode": 143,
-                "n_transitions": 143 * len(days), "steps": 10, "data_files_read": [f"results/data/{ds}/demand.parquet"],
-                "checkpoint": str(ckpt.relative_to(root)),
+                "n_transitions": 143 * len(days), "steps": 10, "data_files_read": [], "checkpoint": str(ckpt.relative_to(root)),
                 "checkpoint_written_at": dt.datetime.fromtimestamp(T0, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-                "read_test_data": False}
+                "read_test_data": False, "model": str(model.relative_to(root))}
     path = run / "train_manifest.json"
     path.write_text(json.dumps(manifest, indent=2))
     os.utime(path, (T0 + 10, T0 + 10))
@@ -184,19 +203,22 @@ def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, da
 
 
 def calibrate(cfg: dict, root: Path) -> None:
-    """Sets the calibration target to Static's training-day served ratio at the configured u and writes the
-    record results/calibration/<dataset>.json (the fixture's stand-in for the calibrate rule)."""
-    from audits.context import AuditContext
-    from audits.derived import static_served_ratio
+    """The fixture's calibration: Static's training-day score at the configured u (dswm.calibration) becomes
+    the target, and the record is written in the calibrate rule's format."""
+    from dswm.calibration import static_score
+    from dswm.config import Scenario
+    from prep.tensor import load
 
     ds = cfg["calibration"]["dataset"]
-    ctx = AuditContext(root=root, config=cfg)
-    train = ctx.train_index(ds)
-    sr = static_served_ratio(ctx, ds, train, cfg["scenario"]["demand_intensity"])
+    t = load(root / "results" / "data" / ds)
+    scenario = Scenario.from_dict(cfg["scenario"])
+    sr = static_score(t, scenario, t.train_days)
     cfg["calibration"]["target_served_ratio"] = round(sr, 4)
-    rec = {"dataset": ds, "days": list(map(int, train)), "u": cfg["scenario"]["demand_intensity"], "sr": sr}
+    rec = {"demand_intensity": scenario.demand_intensity, "served_ratio": sr, "target": round(sr, 4),
+           "iterations": 0, "dataset": ds, "data_source": t.meta["source"],
+           "train_days": [t.labels[d] for d in t.train_days], "config_value": scenario.demand_intensity}
     (root / "results" / "calibration").mkdir(parents=True, exist_ok=True)
-    (root / "results" / "calibration" / f"{ds}.json").write_text(json.dumps(rec))
+    (root / "results" / "calibration" / "demand_intensity.json").write_text(json.dumps(rec))
 
 
 def build_clean_tree(root: Path | str) -> dict:
@@ -209,7 +231,10 @@ def build_clean_tree(root: Path | str) -> dict:
     prepare(cfg, root)
     for ds in cfg["profiles"]["smoke"]["datasets"]:
         for method in METHODS:
-            write_results(cfg, root, ds, method, 0)
+            if method == "static":
+                evaluate_static(cfg, root, ds, 0)
+            else:
+                write_results(cfg, root, ds, method, 0)
             if method == "dswm":
                 write_training(cfg, root, ds, method, 0)
     calibrate(cfg, root)

@@ -162,11 +162,11 @@ def test_replay_buffer_holds_a_test_day(tree):
 
 def test_checkpoint_written_after_training_ended(tree):
     root, cfg = tree
-    ckpt = root / "results/yjmob/dswm/seed0/checkpoint.pt"
+    ckpt = root / "results/yjmob/dswm/seed0/train/checkpoint.pt"
     ckpt.write_bytes(b"rewritten during evaluation")
     os.utime(ckpt, (T0 + 15, T0 + 15))  # after the manifest (T0 + 10), before the results (T0 + 20)
     chk = run(root, cfg, protocol.check_checkpoints)
-    assert any("results/yjmob/dswm/seed0/checkpoint.pt" in m and "after" in m for m in chk.failures), chk.failures
+    assert any("results/yjmob/dswm/seed0/train/checkpoint.pt" in m and "after" in m for m in chk.failures), chk.failures
     assert len([m for m in chk.failures if "milan" in m]) == 0
 
 
@@ -182,21 +182,20 @@ def test_initial_positions_from_all_days(tree):
     train = initial_positions(t.demand[t.train_days].mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
     alld = initial_positions(t.demand.mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
     assert np.abs(alld - train).max() > 50.0  # the fixture's test days move demand east
-    path = root / "results/milan/static/seed0/trajectory.npz"
-    np.savez(path, positions=np.repeat(alld[None, None], 144, axis=1))
+    write_results(cfg, root, "milan", "static", 0, init_pos=alld)
     chk = run(root, cfg, derived.check_initial_positions)
-    assert any("results/milan/static/seed0/trajectory.npz" in m and "ALL-DAYS" in m for m in chk.failures), \
+    assert any("results/milan/static/seed0/trajectory.npz:id_pos" in m and "ALL-DAYS" in m for m in chk.failures), \
         chk.failures
 
 
 def test_calibration_record_with_test_days(tree):
     root, cfg = tree
-    rec_path = root / "results/calibration/milan.json"
+    rec_path = root / "results/calibration/demand_intensity.json"
     rec = json.loads(rec_path.read_text())
-    rec["days"] = rec["days"] + [4]
+    rec["train_days"] = rec["train_days"] + ["2013-12-21"]
     rec_path.write_text(json.dumps(rec))
     chk = run(root, cfg, derived.check_calibration)
-    assert any("results/calibration/milan.json" in m and "2013-12-21" in m for m in chk.failures), chk.failures
+    assert any("results/calibration/demand_intensity.json" in m and "non-training day(s) ['2013-12-21']" in m for m in chk.failures), chk.failures
 
 
 def test_full_audit_exits_nonzero_and_names_the_leak(tree, tmp_path):
@@ -209,3 +208,19 @@ def test_full_audit_exits_nonzero_and_names_the_leak(tree, tmp_path):
     assert failed == ["protocol.training_days"]
     md = (out / "report.md").read_text()
     assert "# Leakage audit: FAIL" in md and "results/yjmob/dswm/seed0/train_manifest.json" in md and "d12" in md
+
+
+def test_intensity_calibrated_on_test_days(tree):
+    root, cfg = tree
+    from dswm.calibration import static_score
+    from dswm.config import Scenario
+    from prep.tensor import load
+
+    t = load(root / "results/data/milan")
+    test_score = static_score(t, Scenario.from_dict(cfg["scenario"]), t.test_days)
+    train_score = cfg["calibration"]["target_served_ratio"]
+    assert abs(test_score - train_score) > 0.02  # the fixture's busier test days are served less
+    cfg["calibration"]["target_served_ratio"] = test_score  # config's u now reaches the target on TEST days
+    chk = run(root, cfg, derived.check_calibration)
+    assert any("config.yaml: scenario.demand_intensity" in m and "u calibrated on test days" in m
+               for m in chk.failures), chk.failures

@@ -1,0 +1,38 @@
+# Leakage audit (SPEC sections 4-6, paper Sections I and V-B): read-only checks of the splits, the training
+# statistics and the protocol, from the files alone. `audit_report` writes the report whatever the verdict;
+# `audit` passes only when every check passes, and its `passed` file is what the tables rule requires.
+
+
+rule audit_report:
+    input:
+        raw=[p for d in DATASETS for p in raw_inputs(config, d)],
+        tensors=expand(rules.prepare.output.tensor, dataset=DATASETS),
+        metas=expand(rules.prepare.output.meta, dataset=DATASETS),
+        results=result_files(),
+        trajectories=[rules.evaluate.output.trajectory.format(dataset=d, method=m, seed=s)
+                      for d, m, s in runconfig.jobs(RUN)],
+        manifests=[rules.train.output.manifest.format(dataset=d, method=m, seed=s)
+                   for d, m, s in runconfig.jobs(RUN) if learns(m)],
+    output:
+        json="results/audit/report.json",
+        md="results/audit/report.md",
+    params:
+        config_hash=runconfig.config_hash(RUN),
+        configfiles=[str(f) for f in workflow.configfiles],
+    log:
+        "logs/audit/report.log",
+    benchmark:
+        "results/benchmarks/audit/report.tsv"
+    script:
+        "../scripts/audit.py"
+
+
+rule audit:
+    input:
+        report=rules.audit_report.output.json,
+    output:
+        passed="results/audit/passed",
+    log:
+        "logs/audit/gate.log",
+    script:
+        "../scripts/audit.py"

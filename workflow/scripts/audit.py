@@ -1,0 +1,26 @@
+"""Leakage audit: `audit_report` runs every check read-only and writes the report; `audit` fails on a red one."""
+import logging
+import sys
+from pathlib import Path
+
+sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
+logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(message)s")
+
+from audits.report import to_markdown, write_atomic, write_report
+from audits.runner import gate, run_audit
+
+if snakemake.rule == "audit_report":  # noqa: F821
+    report = run_audit(root=Path.cwd(), config=snakemake.config,  # noqa: F821
+                       extra_reads=[Path(f) for f in snakemake.params.configfiles])  # noqa: F821
+    write_report(report, json_path=snakemake.output.json, md_path=snakemake.output.md)  # noqa: F821
+    print(to_markdown(report).split("## Evidence")[0], file=sys.stderr)
+else:
+    failing = gate(snakemake.input.report)  # noqa: F821
+    for line in failing:
+        print(f"audit FAIL {line}", file=sys.stderr)
+        print(f"audit FAIL {line}", file=sys.__stderr__)
+    if failing:
+        print(f"leakage audit failed ({len(failing)} findings); see {snakemake.input.report} and the .md beside it",
+              file=sys.__stderr__)
+        sys.exit(1)
+    write_atomic(Path(snakemake.output.passed), "leakage audit passed: " + snakemake.input.report + "\n")  # noqa: F821
