@@ -1,4 +1,5 @@
 # DSWM pipeline: raw demand data -> demand tensors -> trained and evaluated controllers -> tables.
+# Main job: `snakemake --cores 2 tables` (the default target); profile: `--config profile=smoke|demo|paper`.
 from snakemake.utils import min_version
 
 min_version("9.0")
@@ -9,3 +10,8 @@ configfile: "config.yaml"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/prep.smk"
+include: "workflow/rules/mlflow.smk"
+include: "workflow/rules/calibrate.smk"
+include: "workflow/rules/train.smk"
+include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/tables.smk"

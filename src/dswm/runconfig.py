@@ -130,23 +130,25 @@ def check_raw_files(resolved: Mapping[str, Any], root: str | Path) -> None:
 
     Args:
         resolved: the resolved config.
-        root: the directory relative paths in config are taken from (the workflow's working directory).
+        root: the directory the paths and globs of ``datasets.<name>.raw_files`` are relative to.
     """
     root = Path(root)
     for ds in resolved["run"]["datasets"]:
         section = resolved.get("datasets", {}).get(ds, {})
         if section.get("source") != "raw":
             continue
-        raw = section.get("raw", {})
-        for key, value in raw.items():
-            paths = value if isinstance(value, list) else [value]
-            for p in paths:
-                path = root / str(p)
-                matches = list(path.parent.glob(path.name)) if any(c in path.name for c in "*?[") else [path]
-                if not matches or not all(m.exists() for m in matches):
-                    raise ConfigError(f"config.yaml: key 'datasets.{ds}.raw.{key}' names {str(p)!r}, which does not "
-                                      f"exist under {root} (expected the published raw file(s) of {ds}; or set "
-                                      f"'datasets.{ds}.source: demo')")
+        for i, pattern in enumerate(section.get("raw_files", [])):
+            path = Path(pattern)
+            base = path if path.is_absolute() else root / path
+            if any(c in str(pattern) for c in "*?["):
+                anchor = Path(base.anchor)
+                found = list(anchor.glob(str(base.relative_to(anchor))))
+            else:
+                found = [base] if base.exists() else []
+            if not found:
+                raise ConfigError(f"config.yaml: key 'datasets.{ds}.raw_files[{i}]' = {pattern!r} matches no file "
+                                  f"under {root} (expected the published raw file(s) of {ds}; download them, or "
+                                  f"set 'datasets.{ds}.source: demo')")
 
 
 def seeds(resolved: Mapping[str, Any], dataset: str) -> list[int]:

@@ -1,9 +1,76 @@
-# Helpers shared by every rule file: config resolution, validation and wildcard constraints.
+# Helpers shared by every rule file: config validation and resolution, wildcard constraints, target lists.
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from dswm import controllers, runconfig
+from dswm.config import ConfigError
+
+SCHEMA = Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml"
+
+
+# Bad config stops the run here, before any job: the message names the key and the expected form.
+try:
+    runconfig.validate_config(config, runconfig.load_schema(SCHEMA))
+    validate(config, schema=str(SCHEMA), set_default=False)
+    RUN = runconfig.resolve(config)
+    runconfig.check_profile_datasets(RUN)
+    METHOD_CLASSES = controllers.check_methods(RUN)
+    runconfig.check_raw_files(RUN, Path.cwd())
+except ConfigError as err:
+    raise WorkflowError(str(err)) from None
+
+PROFILE = RUN["profile"]
+DATASETS = list(RUN["run"]["datasets"])
+METHODS = list(RUN["methods"]["run"])
+
+
 wildcard_constraints:
     dataset="milan|shanghai|yjmob",
+    method=r"[a-z][a-z0-9_]*",
     seed=r"\d+",
+
+
+def learns(method):
+    """True for methods trained by the `train` rule before evaluation."""
+    return method in METHOD_CLASSES and METHOD_CLASSES[method].learns
+
+
+def trained_model(wildcards):
+    """The trained model and manifest an evaluation needs (none for methods that do not learn)."""
+    if not learns(wildcards.method):
+        return {}
+    return {
+        "model": rules.train.output.model.format(**dict(wildcards.items())),
+        "manifest": rules.train.output.manifest.format(**dict(wildcards.items())),
+    }
+
+
+def result_files():
+    """Every per-day result file of the selected profile."""
+    return [
+        rules.evaluate.output.days.format(dataset=d, method=m, seed=s)
+        for d, m, s in runconfig.jobs(RUN)
+    ]
+
+
+def meta_files():
+    """{dataset: meta.json} of every dataset of the selected profile."""
+    return {d: rules.prepare.output.meta.format(dataset=d) for d in DATASETS}
+
+
+def job_params(wildcards):
+    """What a training/evaluation job depends on besides its input files (a change reruns it)."""
+    return {
+        "profile": PROFILE,
+        "eval_days": RUN["run"]["eval_days"],
+        "scenario": RUN["scenario"],
+        "evaluation": RUN["evaluation"],
+        "method": {k: v for k, v in RUN["methods"].items() if k == wildcards.method},
+        "user": RUN["methods"]["user"].get(wildcards.method, {}),
+        "dswm": RUN.get("dswm", {}) if learns(wildcards.method) else {},
+    }

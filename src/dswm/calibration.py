@@ -1,0 +1,91 @@
+"""Calibration of the demand intensity u (SPEC section 2).
+
+With the published constants alone every cell would be fully served, so the requested rate of a cell is
+x_g * u * r0 with ONE u for every dataset, chosen so that Static serves ``target`` (0.74) on the Milan
+TRAINING days. Static's fleet does not depend on u (it holds the K-means spots), and a larger u asks more of
+the same links, so the served ratio falls monotonically in u and a bisection (in log u) finds it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from dswm.baselines import StaticController
+from dswm.config import ConfigError, Scenario
+from dswm.controllers import DayContext
+from dswm.core import FleetCore, Grid
+from dswm.evaluation import initial_deployment
+
+
+def static_score(tensor, scenario: Scenario, days: np.ndarray, *, device: str = "cpu") -> float:
+    """Mean over ``days`` of Static's day score (mean of the day's T served ratios).
+
+    Args:
+        tensor: a prep.tensor.DemandTensor.
+        scenario: constants (with the demand intensity to score).
+        days: tensor day indices.
+        device: torch device of the environment.
+    """
+    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
+    labels = [d["label"] for d in tensor.meta["days"]]
+    init_pos = initial_deployment(tensor, grid, scenario)
+    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[days]), grid=grid, scenario=scenario,
+                     init_pos=init_pos, dataset=tensor.meta["dataset"], day_labels=[labels[d] for d in days],
+                     device=device)
+    ctrl = StaticController(name="static")
+    ctxs = [DayContext(dataset=tensor.meta["dataset"], day=int(d), label=labels[d], split="train", grid=grid,
+                       scenario=scenario, geometry=grid.geometry(), cells=grid.cells(), init_pos=init_pos,
+                       device=device) for d in days]
+    obs = core.reset(list(range(len(days))))
+    ctrl.reset_batch(ctxs)
+    srs = [core.sr0]
+    for _ in range(scenario.slots_per_day - 1):
+        out = core.step(ctrl.act_batch(obs))
+        obs = out.obs
+        srs.append(out.sr)
+    return float(np.stack(srs, 1).mean(1).mean())
+
+
+def calibrate(*, tensor, scenario: Scenario, target: float, bracket: tuple[float, float], tolerance: float,
+              max_iter: int, device: str = "cpu") -> dict:
+    """Find u with Static's mean served ratio on the TRAINING days of ``tensor`` equal to ``target``.
+
+    Args:
+        tensor: the calibration dataset's DemandTensor (Milan).
+        scenario: constants; its demand_intensity is replaced by the candidates.
+        target: served ratio to reach.
+        bracket: (low, high) values of u with score(low) >= target >= score(high).
+        tolerance: stop once |score - target| <= tolerance.
+        max_iter: bisection steps at most.
+        device: torch device.
+
+    Returns:
+        {"demand_intensity", "served_ratio", "target", "iterations", "dataset", "data_source", "train_days"}.
+    """
+    days = np.asarray(tensor.train_days, dtype=np.int64)
+
+    def score(u: float) -> float:
+        return static_score(tensor, dataclasses.replace(scenario, demand_intensity=u), days, device=device)
+
+    lo, hi = float(bracket[0]), float(bracket[1])
+    s_lo, s_hi = score(lo), score(hi)
+    if not (s_lo >= target >= s_hi):
+        raise ConfigError(f"config.yaml: key 'calibration.bracket' = [{lo}, {hi}] does not bracket the target "
+                          f"{target}: Static serves {s_lo:.4f} at u={lo} and {s_hi:.4f} at u={hi} (expected the "
+                          f"first >= target >= the second)")
+    u, s = (lo, s_lo) if abs(s_lo - target) <= abs(s_hi - target) else (hi, s_hi)
+    it = 0
+    while abs(s - target) > tolerance and it < max_iter:
+        it += 1
+        u = math.sqrt(lo * hi)  # bisection in log u: the bracket spans orders of magnitude
+        s = score(u)
+        if s > target:
+            lo = u
+        else:
+            hi = u
+    labels = [d["label"] for d in tensor.meta["days"]]
+    return {"demand_intensity": u, "served_ratio": s, "target": target, "iterations": it,
+            "dataset": tensor.meta["dataset"], "data_source": tensor.meta["source"],
+            "train_days": [labels[d] for d in days]}

@@ -1,0 +1,163 @@
+"""Per-day evaluation of one controller on the fixed ID and OOD days of a dataset (SPEC sections 3 and 6).
+
+Every method runs the same days through the same ``FleetCore`` from the same initial state (demand-weighted
+K-means of the mean TRAINING map; batteries drawn from (dataset, day) alone). A day's score is the mean of
+its 144 served-ratio values (SR_0 of the initial deployment, then one per decision). The evaluated days of a
+job are stepped as one batch when the controller is batched. The per-day table this module returns is the
+source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results").
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from typing import Any, Mapping
+
+import numpy as np
+import polars as pl
+import torch
+from tqdm import tqdm
+
+from dswm.config import Scenario, stable_hash
+from dswm.controllers import Controller, DayContext
+from dswm.core import FleetCore, Grid, initial_positions, obs_spec_hash
+
+DAY_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
+               "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
+               "dataset", "profile", "data_source"]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvalResult:
+    """Outcome of one (dataset, method, seed) evaluation."""
+
+    days: pl.DataFrame
+    """One row per evaluated day, columns DAY_COLUMNS."""
+    trajectories: dict[str, np.ndarray]
+    """Fleet positions per slot of the first ID and the first OOD day: ``{split}_pos`` (T, K, 2) metres,
+    ``{split}_status`` (T, K), ``{split}_day`` (), ``{split}_label`` ()."""
+
+
+def eval_days(tensor, limits: Mapping[str, int | None]) -> dict[str, list[int]]:
+    """The evaluated tensor day indices per split: the configured days, cut to the profile's limit.
+
+    Args:
+        tensor: a prep.tensor.DemandTensor.
+        limits: {"id": N or None, "ood": N or None}.
+    """
+    out = {}
+    for split in ("id", "ood"):
+        days = [int(d) for d in tensor.eval_days(split)]
+        if not days:
+            raise ValueError(f"meta.json of {tensor.meta['dataset']}: eval_days.{split} is empty; expected at least "
+                             f"one test day")
+        out[split] = days[: limits[split]] if limits[split] is not None else days
+    return out
+
+
+def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str]) -> str:
+    """Hash of the evaluated days (indices and labels per split); the audit compares it across methods."""
+    return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in ("id", "ood")}})
+
+
+def initial_deployment(tensor, grid: Grid, scenario: Scenario) -> np.ndarray:
+    """(K, 2) demand-weighted K-means of the mean TRAINING map (the same for every method)."""
+    train_mean = tensor.demand[tensor.train_days].mean(axis=(0, 1))
+    return initial_positions(train_mean, grid, scenario.n_uavs, scenario.init.kmeans_seed)
+
+
+def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, limits: Mapping[str, int | None],
+             profile: str, device: str = "cpu", batch_days: bool = True, progress_interval_s: float = 5.0,
+             trajectory: bool = True) -> EvalResult:
+    """Run ``controller`` on the evaluation days of ``tensor``.
+
+    Args:
+        tensor: a prep.tensor.DemandTensor (demand (D, T, R, C), meta, grid).
+        controller: the method, fitted already if it learns.
+        scenario: constants.
+        seed: the job's seed (torch and numpy are seeded with it).
+        limits: days per split kept by the profile.
+        profile: profile name, recorded in every row.
+        device: torch device of the environment.
+        batch_days: step every evaluated day as one batch when the controller is batched.
+        progress_interval_s: tqdm refresh interval.
+        trajectory: keep fleet positions per slot of the first day of each split.
+
+    Returns:
+        EvalResult.
+    """
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    dataset = tensor.meta["dataset"]
+    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
+    days = eval_days(tensor, limits)
+    labels = [d["label"] for d in tensor.meta["days"]]
+    order = [(s, d) for s in ("id", "ood") for d in days[s]]  # core index i <-> order[i]
+    init_pos = initial_deployment(tensor, grid, scenario)
+    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[[d for _, d in order]]), grid=grid,
+                     scenario=scenario, init_pos=init_pos, dataset=dataset,
+                     day_labels=[labels[d] for _, d in order], device=device)
+    geometry, cells = grid.geometry(), grid.cells(device=device)
+
+    def context(i: int) -> DayContext:
+        split, day = order[i]
+        return DayContext(dataset=dataset, day=day, label=labels[day], split=split, grid=grid, scenario=scenario,
+                          geometry=geometry, cells=cells, init_pos=init_pos, device=device,
+                          demand=tensor.demand[day] if controller.clairvoyant else None)
+
+    n, steps = len(order), scenario.slots_per_day - 1
+    batches = [list(range(n))] if (batch_days and controller.batched) else [[i] for i in range(n)]
+    keep = {days["id"][0]: "id", days["ood"][0]: "ood"} if trajectory else {}
+    rows, traj = [], {}
+    bar = tqdm(total=n * steps, desc=f"{dataset}/{controller.name}/seed{seed}", unit="day-slot",
+               file=sys.stderr, mininterval=progress_interval_s, dynamic_ncols=False, ascii=True)
+    for batch in batches:
+        obs = core.reset(batch)
+        if controller.batched:
+            controller.reset_batch([context(i) for i in batch])
+        else:
+            controller.reset(context(batch[0]))
+        sr, jain, energy = [core.sr0], [core.jain0], []
+        pos, status = [core.state.pos.cpu().numpy()], [core.state.status.cpu().numpy()]
+        plan_s = 0.0
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            action = controller.act_batch(obs) if controller.batched else controller.act(
+                {k: v[0] for k, v in obs.items()})[None]
+            plan_s += time.perf_counter() - t0
+            out = core.step(action)
+            obs = out.obs
+            sr.append(out.sr)
+            jain.append(out.jain)
+            energy.append(out.energy_j)
+            pos.append(core.state.pos.cpu().numpy())
+            status.append(core.state.status.cpu().numpy())
+            bar.update(len(batch))
+        sr_a, jain_a, energy_a = np.stack(sr, 1), np.stack(jain, 1), np.stack(energy, 1)  # (B, T) / (B, T-1)
+        pos_a, status_a = np.stack(pos, 1), np.stack(status, 1)  # (B, T, K, 2) / (B, T, K)
+        for b, i in enumerate(batch):
+            split, day = order[i]
+            e_kj = float(energy_a[b].mean()) / 1000.0
+            rows.append({"day": day, "label": labels[day], "split": split, "sr_mean": float(sr_a[b].mean()),
+                         "energy_kj_per_slot": e_kj, "energy_efficiency": float(sr_a[b].mean()) / (e_kj / 1000.0),
+                         "jain": float(jain_a[b].mean()), "plan_ms_per_slot": 1000.0 * plan_s / (len(batch) * steps)})
+            if keep.get(day) == split:
+                traj.update({f"{split}_pos": pos_a[b].astype(np.float32), f"{split}_status": status_a[b],
+                             f"{split}_day": np.int64(day), f"{split}_label": np.str_(labels[day])})
+    bar.close()
+    const = {"obs_spec_hash": obs_spec_hash(grid, scenario), "eval_days_hash": eval_days_hash(dataset, days, labels),
+             "scenario_hash": scenario.hash(), "seed": seed, "method": controller.name, "dataset": dataset,
+             "profile": profile, "data_source": str(tensor.meta["source"])}
+    df = pl.DataFrame([{**r, **const} for r in rows]).select(DAY_COLUMNS).with_columns(
+        pl.col("day").cast(pl.Int32), pl.col("seed").cast(pl.Int32))
+    return EvalResult(days=df, trajectories=traj)
+
+
+def split_summary(days: pl.DataFrame) -> dict[str, float]:
+    """Per-split means of the day metrics, named ``{split}/{metric}`` (MLflow metric names)."""
+    out = {}
+    for split in ("id", "ood"):
+        part = days.filter(pl.col("split") == split)
+        for col in ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot"):
+            out[f"{split}/{col}"] = float(part[col].mean())
+    return out

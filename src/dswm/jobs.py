@@ -1,0 +1,132 @@
+"""The workflow's jobs, wired from the library parts; each ``workflow/scripts/*.py`` calls one of these.
+
+* :func:`train_job`     fit a learning method on the TRAINING days; model file + train_manifest.json.
+* :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet + trajectory.npz.
+* :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
+* :func:`tables_job`    the two tables from the result files.
+
+Every output is written atomically (temp file, then rename), and training/evaluation jobs are tracked in
+MLflow with exactly one run each.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from dswm import calibration, controllers, evaluation, runconfig, tables, tracking
+from dswm.atomic import atomic_path, save_npz, write_json
+from dswm.config import Scenario
+from dswm.core import FleetCore, Grid
+
+DAY_METRICS = ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot")
+
+
+def _load_tensor(tensor_dir: str | Path):
+    from prep.tensor import load
+
+    return load(tensor_dir)
+
+
+def _setup(config: Mapping[str, Any]) -> tuple[dict, Scenario]:
+    resolved = runconfig.resolve(config)
+    torch.set_num_threads(int(resolved["evaluation"]["torch_threads"]))
+    return resolved, Scenario.from_dict(resolved["scenario"])
+
+
+def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
+    """A FleetCore over the TRAINING days only; ``core.day_ids`` maps its days to tensor day indices."""
+    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
+    train = np.asarray(tensor.train_days, dtype=np.int64)
+    labels = [d["label"] for d in tensor.meta["days"]]
+    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[train]), grid=grid, scenario=scenario,
+                     init_pos=evaluation.initial_deployment(tensor, grid, scenario), dataset=tensor.meta["dataset"],
+                     day_labels=[labels[d] for d in train], device=device)
+    core.day_ids = train
+    return core
+
+
+def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str, method: str, seed: int,
+              model_out: str | Path, manifest_out: str | Path, run_dir: str | Path, repo: str | Path) -> dict:
+    """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
+
+    Returns:
+        The manifest written (without the loss history, which goes to MLflow).
+    """
+    resolved, scenario = _setup(config)
+    tensor = _load_tensor(tensor_dir)
+    cls = controllers.controller_class(method, resolved)
+    budget = cls.budget_from_config(name=method, config=resolved)
+    with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="train", dataset=dataset,
+                          method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
+        torch.manual_seed(seed)
+        ctrl = cls.from_config(name=method, config=resolved, seed=seed)
+        core = training_core(tensor, scenario, device=resolved["evaluation"]["device"])
+        manifest = dict(ctrl.fit(core, budget=budget, run_dir=run_dir))
+        history = manifest.pop("history", None) or {}
+        steps = history.pop("step", None)
+        for name, values in history.items():
+            run.log_series(name, values, steps)
+        ctrl.save(model_out)
+        manifest.setdefault("model", str(model_out))
+        write_json(manifest_out, manifest)
+        run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
+                         "train/steps": float(manifest.get("steps", 0))})
+        run.log_artifact(manifest_out)
+    return manifest
+
+
+def evaluate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str, method: str, seed: int,
+                 days_out: str | Path, trajectory_out: str | Path, repo: str | Path,
+                 model: str | Path | None = None) -> evaluation.EvalResult:
+    """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz; track it in MLflow."""
+    resolved, scenario = _setup(config)
+    tensor = _load_tensor(tensor_dir)
+    ev = resolved["evaluation"]
+    with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="evaluate", dataset=dataset,
+                          method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
+        ctrl = controllers.build(method, config=resolved, seed=seed)
+        if ctrl.learns:
+            if model is None:
+                raise ValueError(f"{method}: a learning method needs its trained model file")
+            ctrl.load(model)
+        result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
+                                     limits=resolved["run"]["eval_days"], profile=resolved["profile"],
+                                     device=ev["device"], batch_days=ev["batch_days"],
+                                     progress_interval_s=ev["progress_mininterval_s"])
+        with atomic_path(days_out) as tmp:
+            result.days.write_parquet(tmp)
+        save_npz(trajectory_out, **result.trajectories)
+        for row in result.days.iter_rows(named=True):
+            run.log_metrics({f"day/{m}": row[m] for m in DAY_METRICS}, step=row["day"])
+        run.log_metrics(evaluation.split_summary(result.days))
+        run.set_tags({"data_source": tensor.meta["source"], "eval_days_hash": result.days["eval_days_hash"][0],
+                      "obs_spec_hash": result.days["obs_spec_hash"][0]})
+        run.log_artifact(days_out)
+        run.log_artifact(trajectory_out)
+    return result
+
+
+def calibrate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, out: str | Path) -> dict:
+    """Bisection of the demand intensity (see dswm.calibration); writes and returns the JSON report."""
+    resolved, scenario = _setup(config)
+    tensor = _load_tensor(tensor_dir)
+    cal = resolved["calibration"]
+    report = calibration.calibrate(tensor=tensor, scenario=scenario, target=cal["target_served_ratio"],
+                                   bracket=tuple(cal["bracket"]), tolerance=cal["tolerance"],
+                                   max_iter=cal["max_iter"], device=resolved["evaluation"]["device"])
+    report["config_value"] = scenario.demand_intensity
+    write_json(out, report)
+    return report
+
+
+def tables_job(*, config: Mapping[str, Any], result_paths: Sequence[str | Path], meta_paths: Mapping[str, str | Path],
+               out_dir: str | Path) -> dict:
+    """Build milan_main and cross_dataset (md, tex, csv) from the result files."""
+    resolved = runconfig.resolve(config)
+    specs = {m: controllers.spec(m, resolved) for m in resolved["methods"]["run"]}
+    return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,
+                               run_order=list(resolved["methods"]["run"]), tables_cfg=resolved["tables"],
+                               profile=resolved["profile"], out_dir=out_dir)

@@ -1,0 +1,21 @@
+# Training of learning methods on the TRAINING days of a dataset (never its test days).
+
+
+rule train:
+    input:
+        tensor=rules.prepare.output.tensor,
+        meta=rules.prepare.output.meta,
+        mlflow=rules.mlflow_init.output.marker,
+    output:
+        model="results/{dataset}/{method}/seed{seed}/model.pt",
+        manifest="results/{dataset}/{method}/seed{seed}/train_manifest.json",
+    params:
+        job=job_params,
+        run_dir=lambda wc: f"results/{wc.dataset}/{wc.method}/seed{wc.seed}/train",
+    log:
+        "logs/train/{dataset}/{method}/seed{seed}.log",
+    benchmark:
+        "results/benchmarks/train/{dataset}/{method}/seed{seed}.tsv"
+    threads: 1
+    script:
+        "../scripts/train.py"

@@ -1,0 +1,13 @@
+"""Evaluate one (dataset, method, seed) on the fixed ID and OOD days (one MLflow run)."""
+import sys
+from pathlib import Path
+
+sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
+
+from dswm.jobs import evaluate_job
+
+w, inp = snakemake.wildcards, snakemake.input  # noqa: F821
+evaluate_job(config=snakemake.config, tensor_dir=Path(inp.tensor).parent, dataset=w.dataset,  # noqa: F821
+             method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
+             trajectory_out=snakemake.output.trajectory, model=inp.get("model"),  # noqa: F821
+             repo=snakemake.scriptdir + "/../..")  # noqa: F821
