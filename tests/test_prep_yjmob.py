@@ -113,3 +113,13 @@ def test_demo_matches_real_sample_and_spec_statistics(tmp_path):
     assert raw.week["lag"] == 7 and raw.week["pseudo_weekend_phases"] == sorted(cfg.demo.weekend_phases)
     assert abs(stats.top_share(raw.values, 0.05) - 0.22) < 0.04  # SPEC 4: top 5% of cells carry ~22%
     assert raw.dropped["masked_999"] == masked.height
+
+
+def test_demo_is_deterministic_and_seed_dependent(tmp_path):
+    cfg = _config()
+    small = dataclasses.replace(cfg, demo=dataclasses.replace(cfg.demo, n_users=200))
+    a = generate(small, tmp_path / "a")[0].read_bytes()
+    b = generate(small, tmp_path / "b")[0].read_bytes()
+    c = generate(dataclasses.replace(small, demo=dataclasses.replace(small.demo, seed=small.demo.seed + 1)),
+                 tmp_path / "c")[0].read_bytes()
+    assert a == b and a != c
