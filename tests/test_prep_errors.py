@@ -158,3 +158,22 @@ def test_a_failure_after_writing_leaves_no_partial_output(tmp_path, monkeypatch)
         prepare_dataset(config, "milan", raw=[str(raw_dir)], out_dir=out, reference_meta=None)
     assert list(out.iterdir()) == []
     assert tensor.META_FILE == "meta.json"
+
+
+def test_drop_mode_drops_and_counts_out_of_range_rows(tmp_path):
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    _milan(raw_dir, MILAN_BIG + f"10001\t{T0}\t39\t\t\t\t\t1\n" + f"4041\t{T0 - 600_000}\t39\t\t\t\t\t1\n" * 2)
+    config = _config()
+    config["datasets"]["milan"]["on_out_of_range"] = "drop"
+    meta = prepare_dataset(config, "milan", raw=[str(raw_dir)], out_dir=tmp_path / "out", reference_meta=None)
+    assert meta["dropped"] == {"square_outside_grid": 1, "outside_segments": 2}
+    body = YJ_HEADER + "".join(f"{u},{d},{t},5,5\n" for u in range(3) for d in range(6) for t in range(48))
+    bad = _yjmob(raw_dir, body + "7,1,3,201,5\n7,40,3,5,5\n7,41,3,5,5\n")
+    config["datasets"]["yjmob"]["on_out_of_range"] = "drop"
+    config["datasets"]["yjmob"]["split"] = {"train": [0, 3], "test": [4, 5]}
+    ref = tmp_path / "milan_meta.json"
+    ref.write_text('{"dataset": "milan", "train_mean_normalized": 0.2, "kappa": 1.0}')
+    meta = prepare_dataset(config, "yjmob", raw=[str(bad)], out_dir=tmp_path / "out_y", reference_meta=str(ref))
+    assert meta["dropped"] == {"cell_outside_grid": 1, "outside_segments": 2, "masked_999": 0,
+                               "duplicate_records": 0}

@@ -84,16 +84,20 @@ def _check_batch(path: Path, line0: int, df: pl.DataFrame, n_squares: int,
     if i is not None:
         raise PrepError(f"{path}, line {line0 + i}, column 'internet': expected a count >= 0, "
                         f"found {df['internet'][i]}")
-    checks = [("square_outside_grid", ~df["square_id"].is_between(1, n_squares),
+    def outside_segments(frame: pl.DataFrame) -> pl.Series:
+        t = frame["time_interval_ms"]
+        inside = pl.Series([False] * frame.height)
+        for lo, hi in time_ranges or []:
+            inside = inside | ((t >= lo) & (t < hi))
+        return ~inside
+
+    checks = [("square_outside_grid", lambda f: ~f["square_id"].is_between(1, n_squares),
                f"expected a square id in 1..{n_squares} (the declared grid)", "square_id")]
     if time_ranges is not None:
-        t = df["time_interval_ms"]
-        inside = pl.Series([False] * df.height)
-        for lo, hi in time_ranges:
-            inside = inside | ((t >= lo) & (t < hi))
-        checks.append(("outside_segments", ~inside, "expected a time inside a configured segment "
+        checks.append(("outside_segments", outside_segments, "expected a time inside a configured segment "
                        "(datasets.milan.split, local time)", "time_interval_ms"))
-    for reason, bad, expected, col in checks:
+    for reason, test, expected, col in checks:
+        bad = test(df)  # evaluated on the rows left by the previous check
         i = first_bad(bad)
         if i is None:
             continue

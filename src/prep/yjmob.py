@@ -62,12 +62,13 @@ def iter_records(path: Path | str, *, full_size: int = 200, masked_value: int = 
         masked = (df["x"] == masked_value) & (df["y"] == masked_value)
         counts["masked_999"] = counts.get("masked_999", 0) + int(masked.sum())
         df = df.filter(~masked)
-        checks = [("cell_outside_grid", ~(df["x"].is_between(1, full_size) & df["y"].is_between(1, full_size)),
-                   f"expected x, y in 1..{full_size} (or both {masked_value} = masked)", "x")]
+        checks = [("cell_outside_grid", lambda f: ~(f["x"].is_between(1, full_size) & f["y"].is_between(1, full_size)),
+                   f"expected x, y in 1..{full_size} (or both {masked_value} = masked)")]
         if allowed is not None:
-            checks.append(("outside_segments", ~df["d"].is_in(allowed.implode()),
-                           "expected a day inside a configured segment (datasets.yjmob.split)", "d"))
-        for reason, bad, expected, col in checks:
+            checks.append(("outside_segments", lambda f: ~f["d"].is_in(allowed.implode()),
+                           "expected a day inside a configured segment (datasets.yjmob.split)"))
+        for reason, test, expected in checks:
+            bad = test(df)  # evaluated on the rows left by the previous check
             i = first_bad(bad)
             if i is None:
                 continue
