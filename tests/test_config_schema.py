@@ -1,0 +1,115 @@
+"""Config validation and profile resolution: the repository's config passes; each bad input stops up front."""
+import copy
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from dswm import runconfig
+from dswm.config import ConfigError, load_config
+
+from conftest import ROOT
+
+SCHEMA = runconfig.load_schema(ROOT / "workflow" / "schemas" / "config.schema.yaml")
+
+
+@pytest.fixture
+def config():
+    return load_config(ROOT / "config.yaml")
+
+
+def error_of(config):
+    with pytest.raises(ConfigError) as err:
+        runconfig.validate_config(config, SCHEMA)
+    return str(err.value)
+
+
+def test_the_repository_config_is_valid_and_every_level_refuses_unknown_keys(config):
+    runconfig.validate_config(config, SCHEMA)
+
+    objects = []
+
+    def walk(node, where):
+        if isinstance(node, dict):
+            if node.get("type") == "object" or "properties" in node or "patternProperties" in node:
+                objects.append((where, node.get("additionalProperties")))
+            for key, sub in node.items():
+                walk(sub, f"{where}/{key}")
+        elif isinstance(node, list):
+            for i, sub in enumerate(node):
+                walk(sub, f"{where}[{i}]")
+    walk(SCHEMA, "#")
+    assert len(objects) > 40
+    assert [w for w, extra in objects if extra is not False] == []
+
+
+@pytest.mark.parametrize("mutate, words", [
+    (lambda c: c["evaluation"].update(batch_dayz=True),
+     ["unknown key 'evaluation.batch_dayz'", "did you mean 'batch_days'"]),
+    (lambda c: c["scenario"]["channel"].update(eta_los=1.0), ["unknown key 'scenario.channel.eta_los'"]),
+    (lambda c: c["datasets"]["milan"]["crop"].update(rows="twenty"), ["'datasets.milan.crop.rows'", "integer >= 1",
+                                                                      "'twenty'"]),
+    (lambda c: c["evaluation"].update(batch_days="yes"), ["'evaluation.batch_days'", "true or false"]),
+    (lambda c: c["profiles"]["demo"]["seeds"].update(milan=[]), ["'profiles.demo.seeds.milan'", "non-empty list"]),
+    (lambda c: c["mlflow"].pop("store"), ["missing key 'mlflow.store'", ".db"]),
+    (lambda c: c["methods"]["user"].update(mine={"class": "just_a_name"}),
+     ["'methods.user.mine.class'", "package.module:ClassName"]),
+    (lambda c: c["datasets"]["shanghai"].update(source="real"), ["'datasets.shanghai.source'", "demo", "raw"]),
+    (lambda c: c["dswm"]["budgets"]["smoke"].update(stepz=1), ["unknown key 'dswm.budgets.smoke.stepz'"]),
+])
+def test_bad_keys_and_values_are_named_with_the_expected_form(config, mutate, words):
+    bad = copy.deepcopy(config)
+    mutate(bad)
+    msg = error_of(bad)
+    for w in words:
+        assert w in msg, f"{w!r} not in: {msg}"
+
+
+def test_resolution_keeps_only_the_selected_profile_and_its_hash_differs(config):
+    demo = runconfig.resolve(config)
+    assert demo["profile"] == "demo" and demo["run"] == config["profiles"]["demo"] and "profiles" not in demo
+    smoke = runconfig.resolve({**config, "profile": "smoke"})
+    assert smoke["run"]["eval_days"] == {"id": 1, "ood": 1}
+    assert runconfig.config_hash(demo) != runconfig.config_hash(smoke)
+    assert runconfig.config_hash(demo) == runconfig.config_hash(runconfig.resolve(copy.deepcopy(config)))
+    jobs = runconfig.jobs(demo)
+    assert len(jobs) == sum(len(demo["run"]["seeds"][d]) for d in demo["run"]["datasets"]) * len(demo["methods"]["run"])
+    with pytest.raises(ConfigError, match="'profile' must be one of demo, smoke, paper; found 'fast'"):
+        runconfig.resolve({**config, "profile": "fast"})
+
+
+def test_a_profile_dataset_without_seeds_is_refused(config):
+    cfg = copy.deepcopy(config)
+    del cfg["profiles"]["demo"]["seeds"]["yjmob"]
+    with pytest.raises(ConfigError, match=r"profiles\.demo\.seeds\.yjmob' is missing"):
+        runconfig.check_profile_datasets(runconfig.resolve(cfg))
+
+
+def test_raw_source_without_its_files_is_refused(config, tmp_path):
+    cfg = copy.deepcopy(config)
+    cfg["datasets"]["yjmob"]["source"] = "raw"
+    cfg["datasets"]["yjmob"]["raw_files"] = ["data/raw/yjmob/yjmob100k-dataset1.csv.gz"]
+    with pytest.raises(ConfigError) as err:
+        runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)
+    assert "datasets.yjmob.raw_files[0]" in str(err.value) and "source: demo" in str(err.value)
+    (tmp_path / "data" / "raw" / "yjmob").mkdir(parents=True)
+    (tmp_path / "data" / "raw" / "yjmob" / "yjmob100k-dataset1.csv.gz").write_bytes(b"")
+    runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)  # present now: accepted
+    cfg["datasets"]["milan"]["source"] = "raw"  # a glob that matches nothing
+    with pytest.raises(ConfigError, match=r"datasets\.milan\.raw_files\[0\]"):
+        runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)
+
+
+def test_snakemake_stops_before_any_job_on_a_bad_config(config, tmp_path):
+    bad = copy.deepcopy(config)
+    bad["profiles"]["demo"]["seeds"]["shanghai"] = []
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+    snakemake = os.path.join(os.path.dirname(sys.executable), "snakemake")
+    proc = subprocess.run([snakemake, "tables", "-n", "--cores", "1", "--configfile", str(tmp_path / "bad.yaml")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "profiles.demo.seeds.shanghai" in out and "non-empty list" in out
+    assert "Job stats" not in out  # nothing was scheduled

@@ -1,0 +1,111 @@
+"""Per-day evaluation: the day score recomputed from the physics, energy from the hover power, bookkeeping."""
+import numpy as np
+import polars as pl
+import pytest
+import torch
+
+from dswm.baselines import GreedyController, StaticController
+from dswm.core import Grid
+from dswm.evaluation import DAY_COLUMNS, eval_days_hash, evaluate, initial_deployment, split_summary
+from dswm.physics import ServiceParams, served_ratio
+from prep.tensor import DemandTensor, GridSpec
+
+HOVER_W = 168.48  # SPEC section 1: hover power of the rotary-wing model
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small tensors: one torch thread is faster, and immune to a busy machine's oversubscription."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def toy_tensor(n_train=3, n_test=4, rows=6, cols=6, seed=0):
+    """A small prepared-tensor stand-in: days 0..n_train-1 train, the rest test; ID = test 0,1; OOD = 2,3."""
+    rng = np.random.default_rng(seed)
+    n = n_train + n_test
+    demand = rng.gamma(0.6, 1.0, size=(n, 144, rows, cols)).astype(np.float32)
+    days = [{"index": i, "label": f"d{i}", "split": "train" if i < n_train else "test", "weekday": i % 7,
+             "weekend": False} for i in range(n)]
+    meta = {"dataset": "toy", "source": "demo", "days": days, "slots_per_day": 144,
+            "eval_days": {"id": [n_train, n_train + 1], "ood": [n_train + 2, n_train + 3]},
+            "grid": {"rows": rows, "cols": cols, "cell_m": 235.0}}
+    return DemandTensor(demand=demand, meta=meta, grid=GridSpec(rows=rows, cols=cols, cell_m=235.0))
+
+
+@pytest.fixture
+def big_battery(make_scenario):
+    """K=4 and a battery no day can drain, so a static fleet stays where it starts all day."""
+    return make_scenario(n_uavs=4, battery_j=1.0e12, demand_intensity=150.0)
+
+
+def test_static_day_score_is_the_mean_of_144_served_ratios_of_the_fixed_fleet(big_battery):
+    t = toy_tensor()
+    res = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
+                   limits={"id": None, "ood": None}, profile="smoke")
+    grid = Grid(rows=6, cols=6, cell_m=235.0)
+    pos = torch.tensor(initial_deployment(t, grid, big_battery))[None]
+    params = ServiceParams.from_scenario(big_battery)
+    df = res.days
+    assert df.columns == DAY_COLUMNS
+    assert df["day"].to_list() == [3, 4, 5, 6] and df["split"].to_list() == ["id", "id", "ood", "ood"]
+    for row in df.iter_rows(named=True):
+        x = torch.tensor(t.demand[row["day"]].reshape(144, -1))
+        sr = served_ratio(x, pos.expand(144, -1, -1), torch.ones(144, 4, dtype=torch.bool), grid.cells(),
+                          params=params)
+        assert row["sr_mean"] == pytest.approx(float(sr.mean()), abs=1e-6)
+        # a static fleet hovers: K * P_hover * 600 s per slot
+        assert row["energy_kj_per_slot"] == pytest.approx(4 * HOVER_W * 600 / 1000, rel=1e-3)
+        assert row["energy_efficiency"] == pytest.approx(row["sr_mean"] / (row["energy_kj_per_slot"] / 1000))
+        assert 0 < row["jain"] <= 1 and row["plan_ms_per_slot"] >= 0
+        assert (row["method"], row["dataset"], row["profile"], row["data_source"], row["seed"]) == \
+            ("static", "toy", "smoke", "demo", 0)
+    assert df["eval_days_hash"].n_unique() == 1 and df["obs_spec_hash"].n_unique() == 1
+    assert df["scenario_hash"][0] == big_battery.hash()
+
+
+def test_profile_limits_cut_each_split_and_change_the_eval_days_hash(big_battery):
+    t = toy_tensor()
+    full = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
+                    limits={"id": None, "ood": None}, profile="demo").days
+    cut = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
+                   limits={"id": 1, "ood": 1}, profile="smoke").days
+    assert cut["day"].to_list() == [3, 5]
+    assert cut["eval_days_hash"][0] != full["eval_days_hash"][0]
+    assert cut["eval_days_hash"][0] == eval_days_hash("toy", {"id": [3], "ood": [5]}, [f"d{i}" for i in range(7)])
+    # the same day scores the same whatever else is evaluated with it
+    assert cut.filter(pl.col("day") == 5)["sr_mean"][0] == pytest.approx(
+        full.filter(pl.col("day") == 5)["sr_mean"][0], abs=1e-7)
+
+
+def test_trajectories_hold_positions_per_slot_of_the_first_id_and_ood_day(scenario):
+    t = toy_tensor()
+    res = evaluate(tensor=t, controller=StaticController(name="static"), scenario=scenario, seed=0,
+                   limits={"id": None, "ood": None}, profile="demo")
+    tr = res.trajectories
+    assert int(tr["id_day"]) == 3 and int(tr["ood_day"]) == 5 and str(tr["ood_label"]) == "d5"
+    assert tr["id_pos"].shape == (144, scenario.n_uavs, 2) and tr["ood_status"].shape == (144, scenario.n_uavs)
+    grid = Grid(rows=6, cols=6, cell_m=235.0)
+    np.testing.assert_allclose(tr["id_pos"][0], initial_deployment(t, grid, scenario), atol=1e-3)
+    # with the real battery, some UAVs must go and charge during a day (0.5..1.0 E_batt, ~101 kJ per slot)
+    assert (tr["id_status"] == 2).any()
+
+
+def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_scenario):
+    scn = make_scenario(n_uavs=3, demand_intensity=150.0)
+    t = toy_tensor(n_test=4)
+    runs = [evaluate(tensor=t, controller=GreedyController(name="greedy", sweeps=1, lattice=3), scenario=scn,
+                     seed=1, limits={"id": None, "ood": 1}, profile="demo", batch_days=b).days for b in (True, False, True)]
+    cols = ["day", "sr_mean", "energy_kj_per_slot", "jain"]
+    np.testing.assert_allclose(runs[0].select(cols).to_numpy(), runs[1].select(cols).to_numpy(), rtol=1e-5)
+    assert runs[0].drop("plan_ms_per_slot").equals(runs[2].drop("plan_ms_per_slot"))
+
+
+def test_split_summary_averages_days_of_each_split():
+    df = pl.DataFrame({"split": ["id", "id", "ood"], "sr_mean": [0.5, 0.7, 0.9], "energy_kj_per_slot": [1.0, 3.0, 2.0],
+                       "energy_efficiency": [1.0, 1.0, 1.0], "jain": [1.0, 0.5, 1.0], "plan_ms_per_slot": [1.0, 1.0, 2.0]})
+    s = split_summary(df)
+    assert s["id/sr_mean"] == pytest.approx(0.6) and s["ood/sr_mean"] == pytest.approx(0.9)
+    assert s["id/energy_kj_per_slot"] == pytest.approx(2.0) and s["id/jain"] == pytest.approx(0.75)

@@ -1,0 +1,115 @@
+"""Tables from result files: numbers worked out by hand, fixed CSV columns, row order, provenance line."""
+import csv
+import json
+
+import polars as pl
+import pytest
+
+from dswm.controllers import BUILTIN
+from dswm.tables import CROSS_COLUMNS, MAIN_COLUMNS, build_tables
+
+TABLES = {"main_dataset": "milan", "decimals": 3, "split_labels": {"id": "Weekday", "ood": "Holiday"},
+          "class_order": ["world model", "model-free", "deployment", "upper bound"]}
+
+# (dataset, method, seed) -> ({ID day: SR}, {OOD day: SR})
+SCORES = {
+    ("milan", "static", 0): ({0: 0.70, 1: 0.74}, {3: 0.75, 4: 0.77}),
+    ("milan", "static", 1): ({0: 0.72, 1: 0.76}, {3: 0.75, 4: 0.79}),
+    ("milan", "greedy", 0): ({0: 0.80, 1: 0.82}, {3: 0.85, 4: 0.85}),
+    ("milan", "greedy", 1): ({0: 0.78, 1: 0.80}, {3: 0.81, 4: 0.83}),
+    ("milan", "oracle", 0): ({0: 0.90, 1: 0.90}, {3: 0.92, 4: 0.94}),
+    ("milan", "oracle", 1): ({0: 0.90, 1: 0.90}, {3: 0.92, 4: 0.94}),
+    ("shanghai", "static", 0): ({5: 0.40}, {7: 0.45}),
+    ("shanghai", "greedy", 0): ({5: 0.60}, {7: 0.62}),
+    ("shanghai", "oracle", 0): ({5: 0.70}, {7: 0.71}),
+}
+
+
+def write_results(root, profile="demo"):
+    paths = []
+    for (ds, method, seed), (id_days, ood_days) in SCORES.items():
+        rows = [{"day": d, "split": s, "sr_mean": v} for s, days in (("id", id_days), ("ood", ood_days))
+                for d, v in days.items()]
+        df = pl.DataFrame(rows).with_columns(pl.lit(ds).alias("dataset"), pl.lit(method).alias("method"),
+                                             pl.lit(seed).alias("seed"), pl.lit(profile).alias("profile"),
+                                             pl.lit("d").alias("label"), pl.lit(1.0).alias("jain"))
+        p = root / ds / method / f"seed{seed}" / "days.parquet"
+        p.parent.mkdir(parents=True)
+        df.write_parquet(p)
+        paths.append(p)
+    metas = {}
+    for ds, source in (("milan", "demo"), ("shanghai", "raw")):
+        metas[ds] = root / f"{ds}_meta.json"
+        metas[ds].write_text(json.dumps({"dataset": ds, "source": source}))
+    return paths, metas
+
+
+def build(tmp_path, profile="demo", results_profile="demo"):
+    paths, metas = write_results(tmp_path / "results", results_profile)
+    specs = {m: BUILTIN[m] for m in ("static", "greedy", "oracle")}
+    return build_tables(result_paths=paths, meta_paths=metas, specs=specs, run_order=["static", "greedy", "oracle"],
+                        tables_cfg=TABLES, profile=profile, out_dir=tmp_path / "tables")
+
+
+def read_csv(path):
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_main_table_numbers_by_hand(tmp_path):
+    build(tmp_path)
+    rows = read_csv(tmp_path / "tables" / "milan_main.csv")
+    assert list(rows[0]) == MAIN_COLUMNS
+    # grouped by class: model-free (greedy), deployment (static), upper bound (oracle)
+    assert [(r["method"], r["class"]) for r in rows] == [("greedy", "model-free"), ("static", "deployment"),
+                                                         ("oracle", "upper bound")]
+    static = rows[1]
+    # seed scores: weekday 0.72 and 0.74 -> mean 0.73, sample std 0.01*sqrt(2) = 0.0141421
+    assert float(static["weekday_mean"]) == pytest.approx(0.73)
+    assert float(static["weekday_std"]) == pytest.approx(0.0141421356, abs=1e-9)
+    # holiday: 0.76 and 0.77 -> 0.765, std 0.00707107
+    assert float(static["holiday_mean"]) == pytest.approx(0.765)
+    assert float(static["holiday_std"]) == pytest.approx(0.00707106781, abs=1e-9)
+    assert static["n_seeds"] == "2"
+    greedy = rows[0]  # weekday 0.81 / 0.79; holiday 0.85 / 0.82
+    assert float(greedy["weekday_mean"]) == pytest.approx(0.80) and float(greedy["holiday_mean"]) == pytest.approx(0.835)
+    assert float(rows[2]["weekday_std"]) == 0.0
+
+
+def test_cross_table_one_row_per_method_and_dataset(tmp_path):
+    build(tmp_path)
+    rows = read_csv(tmp_path / "tables" / "cross_dataset.csv")
+    assert list(rows[0]) == CROSS_COLUMNS
+    assert [(r["method"], r["dataset"]) for r in rows] == [(m, d) for m in ("greedy", "static", "oracle")
+                                                           for d in ("milan", "shanghai")]
+    sh_static = next(r for r in rows if (r["method"], r["dataset"]) == ("static", "shanghai"))
+    assert (float(sh_static["weekday_mean"]), float(sh_static["holiday_mean"]), sh_static["n_seeds"]) == \
+        (pytest.approx(0.40), pytest.approx(0.45), "1")
+    md = (tmp_path / "tables" / "cross_dataset.md").read_text()
+    assert "| Static (K-means) | 0.730/0.765 | 0.400/0.450 |" in md
+
+
+def test_tables_state_the_profile_and_where_the_data_came_from(tmp_path):
+    build(tmp_path)
+    for name in ("milan_main", "cross_dataset"):
+        for ext in ("md", "tex"):
+            text = (tmp_path / "tables" / f"{name}.{ext}").read_text()
+            assert "profile: demo" in text and "Milan: demo" in text and "Shanghai: raw" in text
+    md = (tmp_path / "tables" / "milan_main.md").read_text()
+    assert "| Static (K-means) | deployment | 0.730±0.014 | 0.765±0.007 | 2 |" in md
+    tex = (tmp_path / "tables" / "milan_main.tex").read_text()
+    assert r"0.730$\pm$0.014" in tex and r"\toprule" in tex and r"\label{tab:milan}" in tex
+
+
+def test_results_of_another_profile_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="profile 'smoke'"):
+        build(tmp_path, profile="demo", results_profile="smoke")
+
+
+def test_a_seed_missing_one_split_is_refused(tmp_path):
+    paths, metas = write_results(tmp_path / "results")
+    p = tmp_path / "results" / "milan" / "greedy" / "seed1" / "days.parquet"
+    pl.read_parquet(p).filter(pl.col("split") == "id").write_parquet(p)
+    with pytest.raises(ValueError, match="milan/greedy"):
+        build_tables(result_paths=paths, meta_paths=metas, specs=BUILTIN, run_order=["static", "greedy", "oracle"],
+                     tables_cfg=TABLES, profile="demo", out_dir=tmp_path / "tables")

@@ -1,0 +1,106 @@
+"""MLflow tracking: store and experiment, one run per job, batches, no duplicate FINISHED runs, FAILED runs."""
+import pytest
+from mlflow.tracking import MlflowClient
+
+from dswm import tracking
+
+RESOLVED = {"profile": "smoke", "scenario": {"n_uavs": 16, "channel": {"a": 9.61}},
+            "methods": {"run": ["static", "greedy"]}, "mlflow": {}}
+
+
+@pytest.fixture(scope="module")
+def db(tmp_path_factory):
+    """One SQLite store for the module (creating its tables takes seconds); each test has its experiment."""
+    return tmp_path_factory.mktemp("mlflow") / "results" / "mlflow.db"
+
+
+@pytest.fixture
+def store(db, tmp_path, request):
+    cfg = {"store": str(db), "artifacts": str(tmp_path / "mlartifacts"), "experiment": request.node.name,
+           "batch_size": 7}
+    info = tracking.init_store(store=cfg["store"], artifacts=cfg["artifacts"], experiment=cfg["experiment"])
+    return cfg, info, MlflowClient(tracking_uri=info["tracking_uri"])
+
+
+def runs(client, info, status=None):
+    q = f"attributes.status = '{status}'" if status else ""
+    return client.search_runs([info["experiment_id"]], filter_string=q)
+
+
+def open_job(cfg, tmp_path, **kw):
+    args = dict(mlflow_cfg=cfg, resolved=RESOLVED, stage="evaluate", dataset="milan", method="static", seed=0,
+                config_hash="abc123", repo=tmp_path)
+    args.update(kw)
+    return tracking.job_run(**args)
+
+
+def test_init_creates_the_store_and_the_experiment_once(store, db, tmp_path):
+    cfg, info, client = store
+    assert db.is_file() and client.get_experiment_by_name(cfg["experiment"]).experiment_id == info["experiment_id"]
+    again = tracking.init_store(store=cfg["store"], artifacts=cfg["artifacts"], experiment=cfg["experiment"])
+    assert again["experiment_id"] == info["experiment_id"]
+    assert info["artifact_location"] == (tmp_path / "mlartifacts").resolve().as_uri()
+
+
+def test_a_job_run_has_tags_params_batched_metrics_and_artifacts(store, tmp_path):
+    cfg, info, client = store
+    result = tmp_path / "days.parquet"
+    result.write_bytes(b"not really parquet")
+    with open_job(cfg, tmp_path) as run:
+        for day in range(10):  # 20 values with batch_size 7: sent as 7 + 7 + 6
+            run.log_metrics({"day/sr_mean": 0.5 + day / 100, "day/jain": 1.0}, step=day)
+        run.log_series("losses/total", [3.0, 2.0, 1.0], steps=[10, 20, 30])
+        run.log_artifact(result)
+    (r,) = runs(client, info)
+    assert r.info.status == "FINISHED"
+    tags = r.data.tags
+    assert (tags["dataset"], tags["method"], tags["seed"], tags["profile"], tags["config_hash"]) == \
+        ("milan", "static", "0", "smoke", "abc123")
+    assert tags["job_key"] == "evaluate/milan/static/seed0" and tags["git_commit"] == "unknown"
+    assert r.data.params["scenario.channel.a"] == "9.61" and r.data.params["methods.run"] == '["static", "greedy"]'
+    hist = client.get_metric_history(r.info.run_id, "day/sr_mean")
+    assert sorted((m.step, round(m.value, 6)) for m in hist) == [(d, round(0.5 + d / 100, 6)) for d in range(10)]
+    assert [(m.step, m.value) for m in client.get_metric_history(r.info.run_id, "losses/total")] == \
+        [(10, 3.0), (20, 2.0), (30, 1.0)]
+    assert [a.path for a in client.list_artifacts(r.info.run_id)] == ["days.parquet"]
+
+
+def test_a_rerun_leaves_one_finished_run_per_job(store, tmp_path):
+    cfg, info, client = store
+    for _ in range(3):
+        with open_job(cfg, tmp_path) as run:
+            run.log_metrics({"id/sr_mean": 0.7})
+    with open_job(cfg, tmp_path, seed=1):
+        pass
+    finished = runs(client, info, "FINISHED")
+    assert sorted(r.data.tags["job_key"] for r in finished) == ["evaluate/milan/static/seed0",
+                                                                "evaluate/milan/static/seed1"]
+    assert run.run_id in {r.info.run_id for r in finished}  # the latest run of the job is the one kept
+
+
+def test_a_failing_job_ends_failed_and_a_killed_one_is_marked_killed(store, tmp_path):
+    cfg, info, client = store
+    with pytest.raises(RuntimeError, match="boom"):
+        with open_job(cfg, tmp_path) as run:
+            run.log_metrics({"day/sr_mean": 0.1}, step=0)
+            raise RuntimeError("boom")
+    assert client.get_run(run.run_id).info.status == "FAILED"
+    # a run left RUNNING (job killed with SIGKILL) is closed as KILLED when the job runs again
+    exp = info["experiment_id"]
+    stale = client.create_run(exp, tags={"job_key": "evaluate/milan/static/seed0"})
+    with open_job(cfg, tmp_path):
+        pass
+    assert client.get_run(stale.info.run_id).info.status == "KILLED"
+    assert client.get_run(run.run_id).info.status == "FAILED"  # failed runs are kept as history
+
+
+def test_missing_store_is_reported_with_the_rule_that_creates_it(tmp_path):
+    cfg = {"store": str(tmp_path / "none.db"), "artifacts": str(tmp_path), "experiment": "x", "batch_size": 10}
+    with pytest.raises(FileNotFoundError, match="mlflow_init"):
+        with open_job(cfg, tmp_path):
+            pass
+
+
+def test_flatten_gives_dotted_string_params():
+    flat = tracking.flatten({"a": {"b": 1, "c": [1, 2], "d": {}}, "e": None})
+    assert flat == {"a.b": "1", "a.c": "[1, 2]", "a.d": "{}", "e": "None"}
