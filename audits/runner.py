@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Mapping
 
-from audits import derived, protocol, splits, statistics
+from audits import crop, derived, protocol, splits, statistics
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -27,6 +27,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     statistics.check_tensor,
     statistics.check_not_all_days,
     derived.check_week,
+    crop.check_crop,
     derived.check_initial_positions,
     derived.check_calibration,
     protocol.check_hashes,
@@ -41,7 +42,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     """Runs one check; a check that crashes is a failed check (the audit never passes on an error)."""
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
-    family = {"derived": "statistics"}.get(family, family)
+    family = {"derived": "statistics", "crop": "statistics"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback

@@ -79,7 +79,8 @@ def _milan_raw(cfg: dict, out: Path, rng: np.random.Generator) -> list[Path]:
 
 
 def _yjmob_raw(cfg: dict, out: Path, rng: np.random.Generator) -> Path:
-    """yjmob100k-dataset1.csv.gz: period-5 activity (phase 4 low), busier test days, some masked rows."""
+    """yjmob100k-dataset1.csv.gz: period-5 activity (phase 4 low), busier test days, some masked rows, and a
+    test-period-only hotspot in the north-east that would move a crop chosen on all days."""
     y = cfg["datasets"]["yjmob"]
     out.mkdir(parents=True, exist_ok=True)
     path = out / "yjmob100k-dataset1.csv.gz"
@@ -95,6 +96,11 @@ def _yjmob_raw(cfg: dict, out: Path, rng: np.random.Generator) -> Path:
                     w.writerow([uid, d, int(rng.integers(0, 48)), int(x), int(yy)])
             if uid % 10 == 0:
                 w.writerow([uid, y["n_days"] - 1, 5, 999, 999])
+        for uid in range(300, 400):  # visitors of a north-east venue during the test period only
+            for d in range(y["split"]["test"][0], y["n_days"]):
+                for _ in range(rng.poisson(60.0)):
+                    x, yy = np.clip(np.round(rng.normal(10, 1.0, 2)), 1, y["full_size"]).astype(int)
+                    w.writerow([uid, d, int(rng.integers(0, 48)), int(x), int(yy)])
     return path
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from audits import derived, protocol, splits, statistics
+from audits import crop, derived, protocol, splits, statistics
 from audits.__main__ import main
 from audits.context import AuditContext
 from audits.testing import T0, build_clean_tree, prepare, write_results, write_training
@@ -224,3 +224,21 @@ def test_intensity_calibrated_on_test_days(tree):
     chk = run(root, cfg, derived.check_calibration)
     assert any("config.yaml: scenario.demand_intensity" in m and "u calibrated on test days" in m
                for m in chk.failures), chk.failures
+
+
+def test_crop_chosen_on_all_days(tree):
+    root, cfg = tree
+    raw = pl.read_csv(root / "results/raw/yjmob/demo/yjmob100k-dataset1.csv.gz").filter(pl.col("x") != 999)
+    counts = np.zeros((12, 12))
+    np.add.at(counts, (raw["y"].to_numpy() - 1, raw["x"].to_numpy() - 1), 1)
+    sums = {(r, c): counts[r:r + 5, c:c + 5].sum() for r in range(8) for c in range(8)}
+    r_all, c_all = max(sums, key=lambda k: (sums[k], -k[0], -k[1]))  # densest 5x5 window over ALL days
+    meta_path = root / "results/data/yjmob/meta.json"
+    meta = json.loads(meta_path.read_text())
+    assert (meta["crop"]["first_y"] - 1, meta["crop"]["first_x"] - 1) != (r_all, c_all)
+    meta["crop"].update(first_x=c_all + 1, first_y=r_all + 1)
+    meta_path.write_text(json.dumps(meta))
+    chk = run(root, cfg, crop.check_crop)
+    assert len(chk.failures) == 1
+    assert "results/data/yjmob/meta.json" in chk.failures[0] and "crop chosen with test-period records" in \
+        chk.failures[0], chk.failures
