@@ -6,6 +6,7 @@ rule tables:
     input:
         results=result_files(),
         **meta_files(),
+        audit=rules.audit.output.passed,  # no table from a pipeline that fails the leakage audit
     output:
         milan_md="results/tables/milan_main.md",
         milan_tex="results/tables/milan_main.tex",
