@@ -15,6 +15,7 @@ import argparse
 import gzip
 import io
 import multiprocessing as mp
+import os
 import resource
 import shutil
 import sys
@@ -118,7 +119,8 @@ def main() -> None:
     ap.add_argument("--tmp", default=None, help="directory for the synthetic raw files (default: system temp)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_prep_", dir=args.tmp))
-    results: dict = {"scale": args.scale, "targets": {"milan_s_per_day": 15, "yjmob_s": 300, "peak_mb": 4096}}
+    results: dict = {"scale": args.scale, "targets": {"milan_s_per_day": 15, "yjmob_s": 300, "peak_mb": 4096},
+                     "load_avg_1min_at_start": os.getloadavg()[0]}
     try:
         squares = max(1, int(round(10_000 * args.scale)))
         crop = [(40 + r) * 100 + 40 + c + 1 for r in range(20) for c in range(20)]

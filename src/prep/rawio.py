@@ -39,7 +39,8 @@ def expand_paths(patterns: Sequence[str | os.PathLike], *, root: Path | None = N
         p = Path(pat)
         if root is not None and not p.is_absolute():
             p = root / p
-        hits = sorted(glob.glob(str(p))) if glob.has_magic(str(p)) else ([str(p)] if p.is_file() else [])
+        hits = [h for h in sorted(glob.glob(str(p))) if Path(h).is_file()] if glob.has_magic(str(p)) \
+            else ([str(p)] if p.is_file() else [])
         if not hits:
             raise PrepError(f"raw input {str(p)!r}: no such file (expected an existing file or a matching glob)")
         out.update(Path(h) for h in hits)
