@@ -109,3 +109,16 @@ def test_split_summary_averages_days_of_each_split():
     s = split_summary(df)
     assert s["id/sr_mean"] == pytest.approx(0.6) and s["ood/sr_mean"] == pytest.approx(0.9)
     assert s["id/energy_kj_per_slot"] == pytest.approx(2.0) and s["id/jain"] == pytest.approx(0.75)
+
+
+def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path):
+    from dswm.atomic import atomic_path, write_json
+
+    target = tmp_path / "seed0" / "days.parquet"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half a file")
+            raise RuntimeError("killed")
+    assert not target.exists() and list(target.parent.iterdir()) == []
+    write_json(tmp_path / "m.json", {"b": 1, "a": [2]})
+    assert (tmp_path / "m.json").read_text() == '{\n  "a": [\n    2\n  ],\n  "b": 1\n}\n'

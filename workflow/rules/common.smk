@@ -1,4 +1,4 @@
-# Helpers shared by every rule file: config validation and resolution, wildcard constraints, target lists.
+# Helpers shared by the rule files (config validation and resolution, wildcard constraints, target lists).
 import sys
 from pathlib import Path
 
