@@ -9,7 +9,7 @@ rule calibrate:
         report="results/calibration/demand_intensity.json",
     params:
         calibration=config["calibration"],
-        scenario=config["scenario"],
+        scenario={k: v for k, v in config["scenario"].items() if k != "demand_intensity"},
     log:
         "logs/calibrate.log",
     benchmark:
