@@ -63,7 +63,8 @@ def _message(err: jsonschema.ValidationError, source: str) -> str:
                              f"(expected a name matching {pattern})")
                 continue
             near = difflib.get_close_matches(name, allowed, n=1)
-            hint = f"; did you mean '{near[0]}'?" if near else ""
+            hint = (f"; did you mean '{near[0]}'?" if near else
+                    "; a new setting is declared in workflow/schemas/config.schema.yaml")
             lines.append(f"{source}: unknown key '{_key([*err.absolute_path, name])}' (expected one of "
                          f"{', '.join(allowed)}){hint}")
         return "\n".join(lines)
