@@ -200,8 +200,10 @@ def check_checkpoints(ctx: AuditContext) -> Check:
             chk.fail(str(exc))
             continue
         where, run = ctx.rel(mpath), ctx.run_dir(ds, method, seed)
-        if man.get("read_test_data") is not False:
-            chk.fail(f"{where}: read_test_data = {man.get('read_test_data')!r}; expected false — training read "
+        if "read_test_data" not in man:
+            chk.fail(f"{where}: read_test_data is not recorded; expected false (training reads no test-day data)")
+        elif man["read_test_data"] is not False:
+            chk.fail(f"{where}: read_test_data = {man['read_test_data']!r}; expected false — training read "
                      f"test-day data")
         closed = mpath.stat().st_mtime
         ck = man.get("checkpoint")

@@ -23,4 +23,5 @@ else:
         print(f"leakage audit failed ({len(failing)} findings); see {snakemake.input.report} and the .md beside it",
               file=sys.__stderr__)
         sys.exit(1)
+    print(f"leakage audit passed: every check of {snakemake.input.report} is green", file=sys.stderr)  # noqa: F821
     write_atomic(Path(snakemake.output.passed), "leakage audit passed: " + snakemake.input.report + "\n")  # noqa: F821
