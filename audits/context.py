@@ -60,6 +60,8 @@ class AuditContext:
         self._meta: dict[str, dict] = {}
         self._tensor: dict[str, Any] = {}
         self._raw: dict[str, Any] = {}
+        self.cache: dict[str, Any] = {}
+        """Values checks share (e.g. statistics recomputed from raw files), keyed by the module that owns them."""
 
     # ---- configuration-derived expectations -----------------------------------------------------------
     def split_cfg(self, ds: str) -> dict[str, list]:

@@ -43,7 +43,7 @@ class Recomputed:
 
 def recompute(ctx: AuditContext, ds: str) -> Recomputed:
     """Rebuilds the raw crop (prep readers) and recomputes p99 and normalized means (cached on ctx)."""
-    cache = ctx.__dict__.setdefault("_recomputed", {})
+    cache = ctx.cache.setdefault("statistics.recompute", {})
     if ds in cache:
         return cache[ds]
     raw = ctx.raw(ds)
