@@ -65,6 +65,9 @@ def run_audit(*, root: Path | str, config: Mapping[str, Any], extra_reads: list[
     """
     from dswm.runconfig import config_hash
 
+    import torch
+
+    torch.set_num_threads(int(config.get("evaluation", {}).get("torch_threads", 1)))  # as every evaluation job
     root = Path(root).resolve()
     ledger = ReadLedger(root=root, guarded=[root])
     for p in extra_reads or []:

@@ -26,6 +26,17 @@ from audits.context import AuditContext
 from audits.testing import T0, build_clean_tree, prepare, write_results, write_training
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """The fixture's environments are tiny (25 cells): one thread is fastest, and no worse on a busy machine."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
     root = tmp_path_factory.mktemp("clean")
