@@ -104,7 +104,8 @@ def test_scorer_rolls_fleet_and_scores_anchored_demand(scenario):
         assert abs(float(got[n]) - ref) < 1e-5
 
 
-def test_imagination_agrees_with_environment_including_battery_returns(scenario):
+@pytest.mark.parametrize("continuation", ["hold", "lloyd"])
+def test_imagination_agrees_with_environment_including_battery_returns(scenario, continuation):
     grid, geom, cells, params = _grid_setup(scenario)
     demand = synthetic_demand(days=1, rows=grid.rows, cols=grid.cols, seed=3) + 0.05
     init = np.random.default_rng(1).uniform(500, 2500, (scenario.n_uavs, 2)).astype(np.float32)
@@ -120,11 +121,15 @@ def test_imagination_agrees_with_environment_including_battery_returns(scenario)
     fleet = fleet_state_from_obs(obs["fleet"][0], grid, scenario)
     scorer = ImaginationScorer(model=None, latent=None, fleet=fleet, x_now=truth[0], geom=geom, scenario=scenario,
                                params=params, cells=cells, gamma=gamma, rho=0.95, lambda_u=1.0,
-                               demand_override=truth)
+                               continuation=continuation, demand_override=truth)
     imagined = float(scorer(actions.unsqueeze(0))[0])
+    taken = scorer.last_actions[0]                         # the sequence with the continuation applied
+    assert torch.equal(taken[0], actions[0])               # the executed first action is the sampled one
+    if continuation == "lloyd":
+        assert float((taken[1:] - actions[1:]).abs().max()) > 0.01
     realized, statuses = 0.0, []
     for tau in range(horizon):
-        out = core.step(actions[tau].numpy()[None])
+        out = core.step(taken[tau].numpy()[None])
         realized += gamma ** (tau + 1) * float(out.sr[0])
         statuses.append(core.state.status[0].clone())
     statuses = torch.stack(statuses)
@@ -136,8 +141,9 @@ def test_imagination_agrees_with_environment_including_battery_returns(scenario)
 
 
 def test_planner_warm_start_and_reproducibility(scenario):
-    cfg = PlannerConfig(horizon=4, n_samples=32, n_elites=4, iterations=2, sigma0=0.3, min_std=0.05, gamma=0.9,
-                        rho=0.95, lambda_u=1.0, warm_start=True)
+    cfg = PlannerConfig(horizon=4, n_samples=32, n_elites=4, iterations=2, sigma0=0.3, sigma0_later=0.3,
+                        min_std=0.05, gamma=0.9, rho=0.95, lambda_u=1.0, warm_start=True, continuation="hold",
+                        proposal="none", proposal_sweeps=1, proposal_lattice=3, proposal_bw_logits=(0.0,))
     target = torch.full((4, scenario.n_uavs, 3), 0.4)
 
     def score(a):

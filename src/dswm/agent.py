@@ -21,10 +21,11 @@ import numpy as np
 import torch
 
 from dswm.atomic import atomic_path
+from dswm.config import stable_hash
 from dswm.controllers import Controller, DayContext
 from dswm.core import Grid, fleet_state_from_obs
 from dswm.physics import ServiceParams
-from dswm.planner import AnchoredCEMPlanner, ImaginationScorer, PlannerConfig
+from dswm.planner import PROPOSALS, AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, anchor
 from dswm.rssm import RSSMConfig
 from dswm.training import TrainConfig, collect, save_training_figure, train
 from dswm.world_model import WorldModel, WorldModelConfig
@@ -82,11 +83,38 @@ def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMS
     budget = budgets[profile]
     wm = _merge(dswm_cfg["world_model"], over.get("world_model"))
     planner = _merge(_merge(dswm_cfg["planner"], budget.get("planner")), over.get("planner"))
+    planner["proposal_bw_logits"] = tuple(float(v) for v in planner.get("proposal_bw_logits", ()))
+    if planner.get("proposal") not in PROPOSALS:
+        raise ValueError(f"config.yaml: key 'dswm.planner.proposal' must be one of {PROPOSALS}, "
+                         f"found {planner.get('proposal')!r}")
     return DSWMSettings(world_model=wm,
                         training=_build(TrainConfig, dswm_cfg["training"], "dswm.training"),
                         planner=_build(PlannerConfig, planner, "dswm.planner"),
                         transitions=int(budget["transitions"]), steps=int(budget["steps"]),
                         device=str(dswm_cfg["device"]))
+
+
+class BCDProposal:
+    """The "bcd" proposal: the greedy baseline's block-coordinate descent (``dswm.baselines``), pointed at the
+    anchored imagined next-slot map instead of the observed one, with the bandwidth logits searched too."""
+
+    def __init__(self, *, sweeps: int, lattice: int, bw_logits: tuple):
+        from dswm.baselines import GreedyController
+
+        class _AnchoredBCD(GreedyController):
+            def target_demand(self, obs):
+                return self.target
+
+        self.bcd = _AnchoredBCD(name="dswm-proposal", sweeps=sweeps, lattice=lattice)
+        self.bcd.bw_logits = tuple(sorted(bw_logits, key=abs))   # 0 first: ties keep the proportional split
+
+    def reset(self, ctx: DayContext) -> None:
+        self.bcd.reset_batch([ctx])
+
+    def __call__(self, obs: Mapping[str, Any], target: torch.Tensor) -> torch.Tensor:
+        """(K, 3) move for one observation, scored on ``target`` (G,)."""
+        self.bcd.target = target.reshape(1, -1).float().cpu()
+        return torch.as_tensor(self.bcd.act_batch({k: np.asarray(v)[None] for k, v in obs.items()})[0])
 
 
 class DSWMController(Controller):
@@ -110,6 +138,12 @@ class DSWMController(Controller):
         s = settings(config["dswm"], method=name, profile=config["profile"])
         return {"transitions": s.transitions, "steps": s.steps}
 
+    def settings_hash(self, budget: Mapping[str, Any]) -> str:
+        """Hash of everything that shapes training (a checkpoint resumes only under the same hash)."""
+        s = self.settings
+        return stable_hash({"world_model": s.world_model, "training": dataclasses.asdict(s.training),
+                            "budget": dict(budget)})
+
     # ---- model construction ---------------------------------------------------------------------------
     def _build_model(self, grid: Grid, scenario) -> WorldModel:
         self.grid, self.scenario = grid, scenario
@@ -132,9 +166,8 @@ class DSWMController(Controller):
         ckpt = run_dir / "checkpoint.pt"
         history = train(self.model, replay, steps=int(budget["steps"]), cfg=self.settings.training,
                         seed=self.seed, checkpoint=ckpt, resume=True,
-                        extra={"method": self.name, "seed": self.seed})
+                        extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(budget)})
         save_training_figure(history, run_dir / "training_diagnostics.png")
-        self.save(run_dir / "model.pt")
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,
                 "n_transitions": replay.n_transitions, "steps": int(budget["steps"]),
@@ -173,8 +206,30 @@ class DSWMController(Controller):
         k = self.scenario.n_uavs
         self.latent = self.model.rssm.initial(1, device=self.device)
         self.last_action = torch.zeros(1, k, 3, device=self.device)
-        self.planner = AnchoredCEMPlanner(cfg=self.settings.planner, n_uavs=k, device=self.device, seed=self.seed)
+        cfg = self.settings.planner
+        self.planner = AnchoredCEMPlanner(cfg=cfg, n_uavs=k, device=self.device, seed=self.seed)
         self.planner.reset(ctx.day)
+        self.proposal = None
+        if cfg.proposal == "bcd":
+            self.proposal = BCDProposal(sweeps=cfg.proposal_sweeps, lattice=cfg.proposal_lattice,
+                                        bw_logits=cfg.proposal_bw_logits)
+            self.proposal.reset(ctx)
+
+    def _proposals(self, obs: Mapping[str, Any], x_now: torch.Tensor) -> torch.Tensor | None:
+        """(M, H, K, 3) seed sequences: the BCD move on the anchored imagined next map, then hold / then the
+        previous plan's continuation."""
+        if self.proposal is None:
+            return None
+        cfg, planner = self.settings.planner, self.planner
+        mean0 = planner.warm_mean()[0]
+        prior = self.model.rssm.img_step(self.latent, mean0.reshape(1, -1), sample=False)
+        x_next, _ = anchor(x_now, self.model.demand_members(self.model.rssm.feat(prior)), cfg.rho)
+        first = self.proposal(obs, x_next[0]).to(self.device)
+        hold = torch.zeros(cfg.horizon, self.scenario.n_uavs, 3, device=self.device)
+        seqs = [hold.clone(), planner.warm_best() if planner.warm_best() is not None else hold.clone()]
+        for q in seqs:
+            q[0] = first
+        return torch.stack(seqs)
 
     def act(self, obs: Mapping[str, Any]) -> np.ndarray:
         t0 = time.perf_counter()
@@ -190,8 +245,8 @@ class DSWMController(Controller):
             scorer = ImaginationScorer(model=self.model, latent=self.latent, fleet=fleet,
                                        x_now=demand[-1].reshape(-1), geom=self.geom, scenario=self.scenario,
                                        params=self.params, cells=self.cells, gamma=cfg.gamma, rho=cfg.rho,
-                                       lambda_u=cfg.lambda_u)
-            action, _ = self.planner.plan(scorer)
+                                       lambda_u=cfg.lambda_u, continuation=cfg.continuation)
+            action, _ = self.planner.plan(scorer, self._proposals(obs, demand[-1].reshape(-1)))
         self.last_action = action.unsqueeze(0)
         self.plan_ms.append(1000.0 * (time.perf_counter() - t0))
         return action.cpu().numpy().astype(np.float32)

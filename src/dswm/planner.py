@@ -19,8 +19,11 @@ import torch
 
 from dswm.config import Scenario
 from dswm.fleet import FleetState, Geometry, available, fleet_step
-from dswm.physics import ServiceParams, served_ratio
+from dswm.physics import ServiceParams, service
 from dswm.rssm import LatentState, map_state
+
+PROPOSALS = ("none", "bcd")
+CONTINUATIONS = ("hold", "lloyd")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -36,7 +39,9 @@ class PlannerConfig:
     iterations: int
     """I, CEM iterations per slot."""
     sigma0: float
-    """Initial sampling std of every action coordinate."""
+    """Initial sampling std of the first step's action coordinates."""
+    sigma0_later: float
+    """Initial sampling std of the later steps (the continuation after the executed action)."""
     min_std: float
     """Floor of the refitted std (keeps exploring within a slot)."""
     gamma: float
@@ -47,6 +52,16 @@ class PlannerConfig:
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
     warm_start: bool
     """Start from the previous slot's mean shifted by one step (else from 0 = hold, proportional split)."""
+    continuation: str
+    """"hold" or "lloyd": how imagined steps after the first act (see ``ImaginationScorer``)."""
+    proposal: str
+    """"none" or "bcd": seed the population with a block-coordinate-descent move on the anchored map."""
+    proposal_sweeps: int
+    """BCD passes over the UAVs of the proposal."""
+    proposal_lattice: int
+    """Points per axis of the proposal's displacement lattice (odd)."""
+    proposal_bw_logits: tuple
+    """Bandwidth logits the proposal searches per UAV (must include 0)."""
 
 
 class CEMResult(NamedTuple):
@@ -115,45 +130,88 @@ def anchor(x_now: torch.Tensor, members: torch.Tensor, rho: float) -> tuple[torc
     return x_hat, spread / x_hat.sum(-1).clamp_min(1e-8)
 
 
+def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: torch.Tensor,
+               d_max: float) -> torch.Tensor:
+    """Move of each UAV toward the demand-weighted centroid of the cells it serves (a Lloyd step).
+
+    Args:
+        x: (N, G) or (G,) demand; assoc: (N, G) serving UAV of each cell; pos: (N, K, 2) metres;
+        cells: (G, 2); d_max: largest displacement per slot.
+    Returns:
+        (N, K, 2) displacement as a fraction of d_max, norm at most 1 (0 for a UAV that serves no demand).
+    """
+    n, k, _ = pos.shape
+    x = x.expand(n, -1)
+    mass = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, x)
+    wsum = torch.zeros(n, k, 2, dtype=pos.dtype, device=pos.device).scatter_add(
+        1, assoc.unsqueeze(-1).expand(-1, -1, 2), x.unsqueeze(-1) * cells)
+    target = torch.where(mass.unsqueeze(-1) > 0, wsum / mass.clamp_min(1e-12).unsqueeze(-1), pos)
+    move = (target - pos) / d_max
+    return move / torch.linalg.vector_norm(move, dim=-1, keepdim=True).clamp_min(1.0)
+
+
 class ImaginationScorer:
-    """Scores N candidate sequences (N, H, K, 3) from one decision point (see module docstring)."""
+    """Scores N candidate sequences (N, H, K, 3) from one decision point (see module docstring).
+
+    ``continuation`` says how the steps after the executed first action act on the imagined fleet:
+    "hold" takes the sampled sequence as it is (open loop); "lloyd" adds the sampled (dx, dy) of every later
+    step to a Lloyd step toward the centroid of each UAV's served demand, so that imagined UAVs keep
+    repositioning (e.g. fly back to demand after charging) instead of freezing where the sequence left them.
+    """
 
     def __init__(self, *, model, latent: LatentState | None, fleet: FleetState, x_now: torch.Tensor,
                  geom: Geometry, scenario: Scenario, params: ServiceParams, cells: torch.Tensor, gamma: float,
-                 rho: float, lambda_u: float, demand_override: torch.Tensor | None = None):
+                 rho: float, lambda_u: float, continuation: str = "hold",
+                 demand_override: torch.Tensor | None = None):
         """Args:
             model: a ``WorldModel`` (may be None only with ``demand_override``).
             latent: posterior state at t, fields (1, .); fleet: FleetState at t with fields (K, ...).
-            x_now: (G,) observed map x_t; cells: (G, 2); demand_override: (H, G) true maps x_{t+1..t+H}.
+            x_now: (G,) observed map x_t; cells: (G, 2); continuation: "hold" or "lloyd";
+            demand_override: (H, G) true maps x_{t+1..t+H} (then no anchoring and no uncertainty).
         """
         if model is None and demand_override is None:
             raise ValueError("ImaginationScorer: a world model is needed unless demand_override is given")
+        if continuation not in CONTINUATIONS:
+            raise ValueError(f"ImaginationScorer: continuation must be one of {CONTINUATIONS}, found {continuation!r}")
         self.model, self.latent, self.fleet, self.x_now = model, latent, fleet, x_now
         self.geom, self.scenario, self.params, self.cells = geom, scenario, params, cells
         self.gamma, self.rho, self.lambda_u, self.override = gamma, rho, lambda_u, demand_override
+        self.continuation = continuation
+        self.last_actions: torch.Tensor | None = None
 
     @torch.no_grad()
     def __call__(self, actions: torch.Tensor) -> torch.Tensor:
-        """Args: actions (N, H, K, 3) in [-1, 1].  Returns: J (N,)."""
+        """Args: actions (N, H, K, 3) in [-1, 1].  Returns: J (N,); ``last_actions`` holds the actions the
+        imagined fleet actually took (N, H, K, 3), i.e. with the continuation applied."""
         n, horizon = actions.shape[:2]
         fleet = self.fleet.expand(n)                                             # fields (N, K, ...)
         state = None if self.latent is None else map_state(self.latent, lambda x: x.expand(n, -1))
         score = torch.zeros(n, dtype=actions.dtype, device=actions.device)
+        taken, x_prev, assoc = [], None, None
         for tau in range(horizon):
             act = actions[:, tau]                                                # (N, K, 3)
+            # Continuation: later steps ride on a Lloyd step of the previous imagined slot.
+            if tau > 0 and self.continuation == "lloyd":
+                base = lloyd_step(x_prev, assoc, fleet.pos, self.cells, self.scenario.d_max_m)
+                act = torch.cat([(act[..., :2] + base).clamp(-1.0, 1.0), act[..., 2:]], -1)
+            taken.append(act)
+            # Fleet kinematics and batteries: the environment's own rules.
             fleet, _ = fleet_step(fleet, act, self.geom, self.scenario)
             avail = available(fleet)                                             # (N, K)
             if self.override is not None:
-                sr = served_ratio(self.override[tau], fleet.pos, avail, self.cells, params=self.params,
-                                  bw_logit=act[..., 2])
-                score += self.gamma ** (tau + 1) * sr
-                continue
-            rssm = self.model.rssm
-            state = rssm.img_step(state, act.flatten(1), sample=False)
-            feat = rssm.feat(state)                                              # (N, F)
-            x_hat, u = anchor(self.x_now, self.model.demand_members(feat), self.rho)
-            sr = self.model.service_sr(feat, x_hat, fleet.pos, avail, act[..., 2])
+                x_prev, u = self.override[tau], 0.0
+                res = service(x_prev, fleet.pos, avail, self.cells, params=self.params, bw_logit=act[..., 2])
+                sr, assoc = res.sr, res.assoc
+            else:
+                # Prior rollout, anchored demand ensemble, service head.
+                rssm = self.model.rssm
+                state = rssm.img_step(state, act.flatten(1), sample=False)
+                feat = rssm.feat(state)                                          # (N, F)
+                x_prev, u = anchor(self.x_now, self.model.demand_members(feat), self.rho)
+                sr, assoc = self.model.serve(feat, x_prev, fleet.pos, avail, act[..., 2],
+                                             need_assoc=self.continuation == "lloyd")
             score += self.gamma ** (tau + 1) * (sr - self.lambda_u * u)
+        self.last_actions = torch.stack(taken, 1)
         return score
 
 
@@ -175,24 +233,40 @@ class AnchoredCEMPlanner:
     def _shift(self, seq: torch.Tensor) -> torch.Tensor:
         return torch.cat([seq[1:], torch.zeros_like(seq[:1])])
 
+    def warm_mean(self) -> torch.Tensor:
+        """(H, K, 3) the sampling mean this slot starts from: the previous mean shifted, or 0."""
+        if self.cfg.warm_start and self.prev_mean is not None:
+            return self._shift(self.prev_mean)
+        return torch.zeros((self.cfg.horizon, self.n_uavs, 3), device=self.device)
+
+    def warm_best(self) -> torch.Tensor | None:
+        """(H, K, 3) the previous slot's best sequence shifted by one step, or None."""
+        if self.cfg.warm_start and self.prev_best is not None:
+            return self._shift(self.prev_best)
+        return None
+
     def plan(self, score_fn: Callable[[torch.Tensor], torch.Tensor],
              proposals: torch.Tensor | None = None) -> tuple[torch.Tensor, CEMResult]:
         """Plan one slot.
 
         Args:
             score_fn: (N, H, K, 3) -> (N,), e.g. an ``ImaginationScorer``.
-            proposals: optional (M, H, K, 3) extra seed sequences for the first iteration.
+            proposals: optional (M, H, K, 3) seed sequences for the first iteration; the sampling mean's first
+                step is set to the first proposal's first action.
         Returns:
             (first action of the best sequence (K, 3), the CEMResult).
         """
         cfg = self.cfg
         shape = (cfg.horizon, self.n_uavs, 3)
-        mean = torch.zeros(shape, device=self.device)
-        seeds = [] if proposals is None else [proposals]
-        if cfg.warm_start and self.prev_mean is not None:
-            mean = self._shift(self.prev_mean)
-            seeds.append(self._shift(self.prev_best).unsqueeze(0))
-        std = torch.full(shape, cfg.sigma0, device=self.device)
+        mean = self.warm_mean().clone()
+        seeds = []
+        if proposals is not None:
+            mean[0] = proposals[0, 0]
+            seeds.append(proposals)
+        if self.warm_best() is not None:
+            seeds.append(self.warm_best().unsqueeze(0))
+        std = torch.full(shape, cfg.sigma0_later, device=self.device)
+        std[0] = cfg.sigma0
         res = cem(score_fn, mean=mean, std=std, n_samples=cfg.n_samples, n_elites=cfg.n_elites,
                   iterations=cfg.iterations, min_std=cfg.min_std, generator=self.generator,
                   seeds=torch.cat(seeds) if seeds else None)

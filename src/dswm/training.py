@@ -22,6 +22,7 @@ from dswm.atomic import atomic_path
 from dswm.core import fleet_state_from_obs
 from dswm.fleet import available
 from dswm.physics import associate
+from dswm.planner import lloyd_step
 from dswm.replay import SequenceReplay
 from dswm.world_model import WorldModel
 
@@ -56,18 +57,14 @@ class TrainConfig:
 
 # ---- pre-collection -------------------------------------------------------------------------------------
 def lloyd_moves(obs: dict, core, rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
-    """Heuristic action (B, K, 3): each UAV heads for the demand-weighted centroid of the cells it serves,
-    plus exploration noise; bandwidth logits are drawn around 0."""
+    """Heuristic action (B, K, 3): each UAV heads for the demand-weighted centroid of the cells it serves
+    (``dswm.planner.lloyd_step``), plus exploration noise; bandwidth logits are drawn around 0."""
     state = fleet_state_from_obs(obs["fleet"], core.grid, core.scenario)
     x = torch.as_tensor(obs["demand"][:, -1]).reshape(len(state.pos), -1)     # (B, G)
     cells = core.cells.cpu().float()
     assoc = associate(state.pos, available(state), cells)                    # (B, G)
+    move = lloyd_step(x, assoc, state.pos, cells, core.scenario.d_max_m)
     b, k = state.status.shape
-    mass = torch.zeros(b, k).scatter_add(1, assoc, x)
-    wsum = torch.zeros(b, k, 2).scatter_add(1, assoc.unsqueeze(-1).expand(-1, -1, 2), x.unsqueeze(-1) * cells)
-    target = torch.where(mass.unsqueeze(-1) > 0, wsum / mass.clamp_min(1e-12).unsqueeze(-1), state.pos)
-    move = (target - state.pos) / core.scenario.d_max_m
-    move = move / torch.linalg.vector_norm(move, dim=-1, keepdim=True).clamp_min(1.0)
     noise = rng.normal(0.0, cfg.explore_std, size=(b, k, 2))
     bw = rng.normal(0.0, cfg.bw_explore_std, size=(b, k, 1))
     return np.clip(np.concatenate([move.numpy() + noise, bw], -1), -1.0, 1.0).astype(np.float32)
@@ -192,8 +189,10 @@ def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainCo
     history: dict[str, list[float]] = {"step": [], **{f"losses/{k}": [] for k in HISTORY_KEYS}}
     start = 0
     if resume and Path(checkpoint).exists():
-        blob = load_checkpoint(checkpoint, model=model, optimizer=opt, generator=gen)
-        start, history = int(blob["step"]), blob["history"]
+        blob = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        if blob.get("extra") == (extra or {}):     # same run (settings hash, method, seed): continue it
+            blob = load_checkpoint(checkpoint, model=model, optimizer=opt, generator=gen)
+            start, history = int(blob["step"]), blob["history"]
     window = max(1, steps // max(1, cfg.log_points))
     acc = {k: 0.0 for k in HISTORY_KEYS}
     n_acc = 0

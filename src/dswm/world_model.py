@@ -18,7 +18,7 @@ import dataclasses
 import torch
 from torch import nn
 
-from dswm.physics import ServiceParams, served_ratio
+from dswm.physics import ServiceParams, associate, served_ratio, service
 from dswm.rssm import RSSM, LatentState, RSSMConfig, map_state
 from dswm.wm_modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symexp, symlog,
                              variance_margin)
@@ -130,6 +130,18 @@ class WorldModel(nn.Module):
             return self.sr_head(feat)
         return served_ratio(demand, pos, avail, self.cells, params=self.params, bw_logit=bw_logit)
 
+    def serve(self, feat: torch.Tensor, demand: torch.Tensor, pos: torch.Tensor, avail: torch.Tensor,
+              bw_logit: torch.Tensor, *, need_assoc: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Planning-time service head: (SR_hat (N,), association (N, G) or None).
+
+        The physics head's association comes with its SR; the SR-MLP head computes one only when asked.
+        """
+        if self.sr_head is not None:
+            assoc = associate(pos, avail, self.cells) if need_assoc else None
+            return self.sr_head(feat), assoc
+        res = service(demand, pos, avail, self.cells, params=self.params, bw_logit=bw_logit)
+        return res.sr, res.assoc
+
     # ---- training loss ---------------------------------------------------------------------------------
     def loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """World-model loss on a batch of sequences.
@@ -171,7 +183,9 @@ class WorldModel(nn.Module):
         pos = batch["next_pos"].reshape(t_len * b, self.n_uavs, 2)
         avail = batch["next_avail"].reshape(t_len * b, self.n_uavs)
         bw = act.reshape(t_len * b, self.n_uavs, 3)[..., 2]
-        sr_hat = self.service_sr(feat_next, x_hat, pos, avail, bw)
+        # float64 here: the gradient of the SNR through a tiny bandwidth share (a cell with tiny predicted
+        # demand under a large bandwidth logit) divides by (N0 * share)^2, which underflows in float32.
+        sr_hat = self.service_sr(feat_next, x_hat.double(), pos.double(), avail, bw.double()).float()
         l_serve = ((sr_hat - batch["next_sr"].reshape(-1)) ** 2).mean()
 
         # KL with balancing and free bits.
