@@ -148,7 +148,8 @@ class GreedyController(BatchedController):
             return plan, logit
         x, cells = x[:, cols], self.cells[cols]
         levels = torch.tensor(self.bw_logits, dtype=torch.float32)
-        for _ in range(self.sweeps):
+        rows = _Rows(x, avail)  # per-candidate copies of the maps and availability, made once per slot
+        for sweep in range(self.sweeps):
             for j in range(k):
                 take = movable[:, j] & avail[:, j]  # (B,) days on which UAV j can move and serve
                 if not bool(take.any()):
@@ -156,42 +157,58 @@ class GreedyController(BatchedController):
                 # Lattice of reachable points of UAV j, the others held at their plan; then finer rounds.
                 home = state.pos[:, j]  # (B, 2)
                 cand = self.geom.clip(home.unsqueeze(1) + self.offsets.unsqueeze(0))  # (B, L, 2)
-                best = self._pick(x, plan, avail, logit, j, cand, cells, take)
+                best, best_sr = self._pick(rows, plan, logit, j, cand, cells)
                 for r in range(1, self.refine + 1):
-                    step = self.spacing / 2**r * _RING.unsqueeze(0)  # (1, 9, 2), first row (0, 0)
+                    step = self.spacing / 2**r * _RING.unsqueeze(0)  # (1, 8, 2): the 8 neighbours
                     cand = self.geom.clip(_into_disk(best.unsqueeze(1) + step, home, self.scenario.d_max_m))
-                    best = self._pick(x, plan, avail, logit, j, cand, cells, take)
-                plan[:, j] = best
-                if levels.numel():
-                    # Then its bandwidth logit, positions fixed.
+                    near, near_sr = self._pick(rows, plan, logit, j, cand, cells)
+                    better = near_sr > best_sr  # a neighbour must beat the point it surrounds
+                    best = torch.where(better.unsqueeze(-1), near, best)
+                    best_sr = torch.maximum(near_sr, best_sr)
+                plan[:, j] = torch.where(take.unsqueeze(-1), best, plan[:, j])
+                if levels.numel() and sweep == self.sweeps - 1:
+                    # Last sweep: then its bandwidth logit, positions fixed.
                     lg = logit.unsqueeze(1).expand(b, len(levels), k).clone()
                     lg[:, :, j] = levels.unsqueeze(0)
-                    sr = served_ratio(x.repeat_interleave(len(levels), dim=0),
-                                      plan.repeat_interleave(len(levels), dim=0),
-                                      avail.repeat_interleave(len(levels), dim=0), cells, params=self.params,
-                                      bw_logit=lg.reshape(-1, k)).reshape(b, len(levels))
+                    x_n, avail_n = rows.get(len(levels))
+                    sr = served_ratio(x_n, plan.repeat_interleave(len(levels), dim=0), avail_n, cells,
+                                      params=self.params, bw_logit=lg.reshape(-1, k)).reshape(b, len(levels))
                     logit[:, j] = torch.where(take, levels[sr.argmax(dim=1)], logit[:, j])
         return plan, logit
 
-    def _pick(self, x, plan, avail, logit, j, cand, cells, take) -> torch.Tensor:
-        """(B, 2) best of the candidate points ``cand`` (B, L, 2) of UAV j (its plan where it cannot move).
+    def _pick(self, rows, plan, logit, j, cand, cells) -> tuple[torch.Tensor, torch.Tensor]:
+        """Best of the candidate points ``cand`` (B, L, 2) of UAV j, the others at ``plan``.
 
         One call of the physics scores all B*L candidate fleets; ties go to the first candidate.
+
+        Returns:
+            (B, 2) best point and (B,) its served ratio.
         """
         b, n_cand = cand.shape[:2]
         k = plan.shape[1]
         fleets = plan.unsqueeze(1).expand(b, n_cand, k, 2).clone()  # (B, L, K, 2)
         fleets[:, :, j] = cand
-        sr = served_ratio(x.repeat_interleave(n_cand, dim=0), fleets.reshape(b * n_cand, k, 2),
-                          avail.repeat_interleave(n_cand, dim=0), cells, params=self.params,
+        x_n, avail_n = rows.get(n_cand)
+        sr = served_ratio(x_n, fleets.reshape(b * n_cand, k, 2), avail_n, cells, params=self.params,
                           bw_logit=logit.repeat_interleave(n_cand, dim=0) if self.bw_logits else None)
-        chosen = cand[torch.arange(b), sr.reshape(b, n_cand).argmax(dim=1)]
-        return torch.where(take.unsqueeze(-1), chosen, plan[:, j])
+        best_sr, idx = sr.reshape(b, n_cand).max(dim=1)
+        return cand[torch.arange(b), idx], best_sr
 
 
-_RING = torch.tensor([[0, 0], [-1, -1], [-1, 0], [-1, 1], [0, -1], [0, 1], [1, -1], [1, 0], [1, 1]],
-                     dtype=torch.float32)
-"""The current point and its 8 lattice neighbours (refinement rounds)."""
+class _Rows:
+    """Maps (B, G) and availability (B, K) repeated for n candidates per day, built once per slot and n."""
+
+    def __init__(self, x: torch.Tensor, avail: torch.Tensor):
+        self.x, self.avail, self.cache = x, avail, {}
+
+    def get(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if n not in self.cache:
+            self.cache[n] = (self.x.repeat_interleave(n, dim=0), self.avail.repeat_interleave(n, dim=0))
+        return self.cache[n]
+
+
+_RING = torch.tensor([[-1, -1], [-1, 0], [-1, 1], [0, -1], [0, 1], [1, -1], [1, 0], [1, 1]], dtype=torch.float32)
+"""The 8 lattice neighbours of a point (refinement rounds)."""
 
 
 def _into_disk(points: torch.Tensor, centre: torch.Tensor, radius: float) -> torch.Tensor:
