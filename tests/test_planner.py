@@ -143,7 +143,8 @@ def test_imagination_agrees_with_environment_including_battery_returns(scenario,
 def test_planner_warm_start_and_reproducibility(scenario):
     cfg = PlannerConfig(horizon=4, n_samples=32, n_elites=4, iterations=2, sigma0=0.3, sigma0_later=0.3,
                         min_std=0.05, gamma=0.9, rho=0.95, lambda_u=1.0, warm_start=True, continuation="hold",
-                        proposal="none", proposal_sweeps=1, proposal_lattice=3, proposal_bw_logits=(0.0,))
+                        proposal="none", proposal_sweeps=1, proposal_lattice=3, proposal_refine=0,
+                        proposal_bw_logits=(0.0,))
     target = torch.full((4, scenario.n_uavs, 3), 0.4)
 
     def score(a):

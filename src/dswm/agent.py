@@ -98,14 +98,14 @@ class BCDProposal:
     """The "bcd" proposal: the greedy baseline's block-coordinate descent (``dswm.baselines``), pointed at the
     anchored imagined next-slot map instead of the observed one, with the bandwidth logits searched too."""
 
-    def __init__(self, *, sweeps: int, lattice: int, bw_logits: tuple):
+    def __init__(self, *, sweeps: int, lattice: int, refine: int, bw_logits: tuple):
         from dswm.baselines import GreedyController
 
         class _AnchoredBCD(GreedyController):
             def target_demand(self, obs):
                 return self.target
 
-        self.bcd = _AnchoredBCD(name="dswm-proposal", sweeps=sweeps, lattice=lattice)
+        self.bcd = _AnchoredBCD(name="dswm-proposal", sweeps=sweeps, lattice=lattice, refine=refine)
         self.bcd.bw_logits = tuple(sorted(bw_logits, key=abs))   # 0 first: ties keep the proportional split
 
     def reset(self, ctx: DayContext) -> None:
@@ -212,7 +212,7 @@ class DSWMController(Controller):
         self.proposal = None
         if cfg.proposal == "bcd":
             self.proposal = BCDProposal(sweeps=cfg.proposal_sweeps, lattice=cfg.proposal_lattice,
-                                        bw_logits=cfg.proposal_bw_logits)
+                                        refine=cfg.proposal_refine, bw_logits=cfg.proposal_bw_logits)
             self.proposal.reset(ctx)
 
     def _proposals(self, obs: Mapping[str, Any], x_now: torch.Tensor) -> torch.Tensor | None:

@@ -60,6 +60,8 @@ class PlannerConfig:
     """BCD passes over the UAVs of the proposal."""
     proposal_lattice: int
     """Points per axis of the proposal's displacement lattice (odd)."""
+    proposal_refine: int
+    """Rounds of half-spacing refinement of each UAV's lattice point in the proposal."""
     proposal_bw_logits: tuple
     """Bandwidth logits the proposal searches per UAV (must include 0)."""
 

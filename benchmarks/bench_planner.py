@@ -1,0 +1,179 @@
+"""DSWM planning per slot and world-model training throughput.
+
+Run: python benchmarks/bench_planner.py [--threads 2] [--device cpu] [--slots 8]
+Writes benchmarks/results/planner.json (or planner_<device>.json) and planner.png.
+
+Per-slot planning is timed at the paper's production settings (N_cem=512, 6 iterations, H=15, E=5, K=16,
+G=400 on a 20x20 grid), with the configured proposal and continuation and without them (plain CEM), and at
+the demo and smoke planner sizes of config.yaml; one imagined step is broken down into its parts (RSSM prior,
+demand ensemble + anchoring, fleet kinematics, service physics). Training throughput is gradient steps per
+second at the configured batch and sequence length. Target on a 2-core machine: <= 300 ms per slot.
+Weights are untrained: the cost does not depend on their values. The machine's load average is recorded.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import time
+
+import numpy as np
+import torch
+import yaml
+
+from _timing import RESULTS, median_ms, write
+from dswm.agent import DSWMController, settings
+from dswm.config import Scenario
+from dswm.controllers import DayContext
+from dswm.core import FleetCore, Grid, initial_positions
+from dswm.env import synthetic_demand
+from dswm.fleet import available, fleet_step
+from dswm.physics import service
+from dswm.planner import anchor
+from dswm.training import collect, make_optimizer
+
+
+def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, device: str) -> DSWMController:
+    c = copy.deepcopy(cfg["dswm"])
+    c["device"] = device
+    c["budgets"][profile]["planner"] = {**(c["budgets"][profile].get("planner") or {}), **planner_over}
+    ctl = DSWMController(name="dswm", seed=0, device=device, settings=settings(c, method="dswm", profile=profile))
+    ctl.model = ctl._build_model(core.grid, core.scenario)
+    ctl.model.set_normalizer(torch.as_tensor(core.demand[:1].cpu().numpy()))
+    ctl.model.eval()
+    return ctl
+
+
+def _time_slots(ctl: DSWMController, core: FleetCore, slots: int) -> dict:
+    """Median and spread of per-slot planning time over ``slots`` consecutive slots of one day."""
+    obs = core.reset([0])
+    ctl.reset(DayContext(dataset="bench", day=0, label="d0", split="id", grid=core.grid, scenario=core.scenario,
+                         geometry=core.geom, cells=core.cells, init_pos=core.init_pos.cpu().numpy(),
+                         device=str(ctl.device)))
+    times = []
+    for _ in range(slots + 1):
+        t0 = time.perf_counter()
+        a = ctl.act({k: v[0] for k, v in obs.items()})
+        times.append(1e3 * (time.perf_counter() - t0))
+        obs = core.step(a[None]).obs
+    times = times[1:]                                      # the first slot pays one-time allocations
+    return {"median_ms": round(statistics.median(times), 1), "min_ms": round(min(times), 1),
+            "max_ms": round(max(times), 1)}
+
+
+def _breakdown(ctl: DSWMController, core: FleetCore, n: int) -> dict:
+    """Milliseconds of each part of ONE imagined step for n candidates."""
+    model, dev = ctl.model, ctl.device
+    k = core.scenario.n_uavs
+    state = model.rssm.initial(n, device=dev)
+    act = torch.rand(n, k, 3, device=dev) * 2 - 1
+    fleet = type(core.state)(*(t[0].to(dev) for t in core.state)).expand(n)
+    x_now = core.demand[0, 0].to(dev)
+    with torch.inference_mode():
+        feat = model.rssm.feat(model.rssm.img_step(state, act.flatten(1), sample=False))
+        nxt, _ = fleet_step(fleet, act, core.geom, core.scenario)
+        x_hat, _ = anchor(x_now, model.demand_members(feat), 0.95)
+        avail = available(nxt)
+        cells = core.cells.to(dev)
+        parts = {
+            "rssm_prior": median_ms(lambda: model.rssm.img_step(state, act.flatten(1), sample=False), reps=10),
+            "demand_ensemble_and_anchor": median_ms(lambda: anchor(x_now, model.demand_members(feat), 0.95),
+                                                    reps=10),
+            "fleet_step": median_ms(lambda: fleet_step(fleet, act, core.geom, core.scenario), reps=10),
+            "service_physics": median_ms(lambda: service(x_hat, nxt.pos, avail, cells, params=core.params,
+                                                         bw_logit=act[..., 2]), reps=10),
+        }
+    return {key: round(v, 2) for key, v in parts.items()}
+
+
+def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
+    s = settings(cfg["dswm"], method="dswm", profile="demo")
+    rep = collect(core, n_transitions=2 * 143, cfg=s.training, seed=0, day_ids=np.arange(core.n_days))
+    ctl = DSWMController(name="dswm", seed=0, device=device, settings=s)
+    model = ctl._build_model(core.grid, core.scenario)
+    model.set_normalizer(rep.demand)
+    opt = make_optimizer(model, s.training)
+    gen = torch.Generator().manual_seed(0)
+
+    def step():
+        batch = {k: v.to(device) for k, v in rep.sample(s.training.batch, s.training.seq_len, gen).items()}
+        loss, _ = model.loss(batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        model.update_teacher()
+
+    ms = median_ms(step, reps=steps, warmup=2)
+    return {"batch": s.training.batch, "seq_len": s.training.seq_len, "median_ms_per_step": round(ms, 1),
+            "steps_per_s": round(1e3 / ms, 2)}
+
+
+def _figure(result: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    names = list(result["per_slot"])
+    vals = [result["per_slot"][n]["median_ms"] for n in names]
+    axes[0].barh(names, vals, color="tab:blue")
+    axes[0].axvline(300, color="tab:red", ls="--", label="target 300 ms")
+    axes[0].set_xlabel("median planning time per slot (ms)")
+    axes[0].set_xscale("log")
+    axes[0].legend(fontsize=8)
+    axes[0].set_title(f"per-slot planning ({result['device']}, load {result['load_avg_1min_start']:.1f})")
+    parts = result["imagined_step_breakdown_ms"]
+    axes[1].bar(list(parts), list(parts.values()), color="tab:gray")
+    axes[1].set_ylabel("ms per imagined step (N=512)")
+    axes[1].set_title(f"one imagined step; training {result['training']['steps_per_s']} steps/s")
+    axes[1].tick_params(axis="x", labelrotation=20, labelsize=8)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=120)
+    tmp.replace(path)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--slots", type=int, default=8, help="timed slots per setting")
+    ap.add_argument("--train-steps", type=int, default=20)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    load0 = __import__("os").getloadavg()[0]
+    cfg = yaml.safe_load((RESULTS.parents[1] / "config.yaml").read_text())
+    scenario = Scenario.from_dict(cfg["scenario"])
+    grid = Grid(rows=20, cols=20, cell_m=235.0)
+    demand = synthetic_demand(days=2, rows=20, cols=20, slots=scenario.slots_per_day, seed=0) + 0.02
+    core = FleetCore(demand=demand, grid=grid, scenario=scenario, dataset="bench", day_labels=["d0", "d1"],
+                     init_pos=initial_positions(demand.mean((0, 1)), grid, scenario.n_uavs, 0), device=args.device)
+    production = {"n_samples": 512, "n_elites": 64, "iterations": 6, "horizon": 15}
+    settings_list = {
+        "production (configured proposal)": ("paper", production),
+        "production, plain CEM": ("paper", {**production, "proposal": "none", "continuation": "hold"}),
+        "demo sizes": ("demo", {}),
+        "smoke sizes": ("smoke", {}),
+    }
+    per_slot = {}
+    for name, (profile, over) in settings_list.items():
+        ctl = _controller(cfg, profile, over, core, args.device)
+        per_slot[name] = {**_time_slots(ctl, core, args.slots),
+                          "planner": {k: getattr(ctl.settings.planner, k) for k in
+                                      ("n_samples", "n_elites", "iterations", "horizon", "proposal", "continuation")}}
+        print(name, per_slot[name], flush=True)
+    ctl = _controller(cfg, "paper", production, core, args.device)
+    result = {"device": args.device, "threads": args.threads, "load_avg_1min_start": load0,
+              "grid": [20, 20], "K": scenario.n_uavs, "E": ctl.settings.wm_config(scenario.n_uavs).ensemble,
+              "per_slot": per_slot, "imagined_step_breakdown_ms": _breakdown(ctl, core, 512),
+              "training": _train_throughput(cfg, core, args.device, args.train_steps),
+              "target_ms_per_slot": 300}
+    suffix = "" if args.device == "cpu" else f"_{args.device.split(':')[0]}"
+    write(f"planner{suffix}", result)
+    _figure(result, RESULTS / f"planner{suffix}.png")
+
+
+if __name__ == "__main__":
+    main()
