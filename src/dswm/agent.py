@@ -201,6 +201,9 @@ class DSWMController(Controller):
         if (g.rows, g.cols) != (self.model.rows, self.model.cols):
             raise ValueError(f"{self.name}: model trained on a {self.model.rows}x{self.model.cols} grid, "
                              f"day {ctx.label} of {ctx.dataset} has {g.rows}x{g.cols}")
+        if ctx.scenario.hash() != self.scenario.hash():
+            raise ValueError(f"{self.name}: model trained under scenario hash {self.scenario.hash()}, day "
+                             f"{ctx.label} of {ctx.dataset} is evaluated under {ctx.scenario.hash()}; retrain it")
         self.ctx, self.geom = ctx, ctx.geometry
         self.cells = torch.as_tensor(ctx.cells, dtype=torch.float32, device=self.device)
         k = self.scenario.n_uavs
