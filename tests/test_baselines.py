@@ -58,7 +58,7 @@ def test_static_flies_back_to_its_spot_at_most_d_max_per_slot(make_scenario):
     init = np.array([[500.0, 500.0], [2000.0, 2000.0]])
     ctrl = StaticController(name="static")
     ctrl.reset(ctx(scn, init))
-    # UAV 0 is 3000 m east of... clipped area: put it 1000 m north of its spot; UAV 1 already there.
+    # UAV 0 is 1000 m north of its spot, UAV 1 is on its spot
     a = ctrl.act(observe(scn, [[500.0, 1500.0], [2000.0, 2000.0]], hotspot(0, 0)))
     assert a.shape == (2, 3)
     assert a[0, :2] * scn.d_max_m == pytest.approx([0.0, -1000.0], abs=0.5)

@@ -97,7 +97,8 @@ def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_s
     scn = make_scenario(n_uavs=3, demand_intensity=150.0)
     t = toy_tensor(n_test=4)
     runs = [evaluate(tensor=t, controller=GreedyController(name="greedy", sweeps=1, lattice=3), scenario=scn,
-                     seed=1, limits={"id": None, "ood": 1}, profile="demo", batch_days=b).days for b in (True, False, True)]
+                     seed=1, limits={"id": None, "ood": 1}, profile="demo", batch_days=b).days
+            for b in (True, False, True)]
     cols = ["day", "sr_mean", "energy_kj_per_slot", "jain"]
     np.testing.assert_allclose(runs[0].select(cols).to_numpy(), runs[1].select(cols).to_numpy(), rtol=1e-5)
     assert runs[0].drop("plan_ms_per_slot").equals(runs[2].drop("plan_ms_per_slot"))
@@ -105,7 +106,8 @@ def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_s
 
 def test_split_summary_averages_days_of_each_split():
     df = pl.DataFrame({"split": ["id", "id", "ood"], "sr_mean": [0.5, 0.7, 0.9], "energy_kj_per_slot": [1.0, 3.0, 2.0],
-                       "energy_efficiency": [1.0, 1.0, 1.0], "jain": [1.0, 0.5, 1.0], "plan_ms_per_slot": [1.0, 1.0, 2.0]})
+                       "energy_efficiency": [1.0, 1.0, 1.0], "jain": [1.0, 0.5, 1.0],
+                       "plan_ms_per_slot": [1.0, 1.0, 2.0]})
     s = split_summary(df)
     assert s["id/sr_mean"] == pytest.approx(0.6) and s["ood/sr_mean"] == pytest.approx(0.9)
     assert s["id/energy_kj_per_slot"] == pytest.approx(2.0) and s["id/jain"] == pytest.approx(0.75)
