@@ -1,0 +1,142 @@
+"""The whole DAG on the `smoke` profile in a temporary copy of the repository, then its outputs checked.
+
+One run (module fixture): `snakemake tables calibrate --config profile=smoke` builds the demo raw data of the
+three datasets, prepares them, creates the MLflow store, evaluates static/greedy/oracle on one ID and one OOD
+day per dataset, calibrates u on the Milan training days, and writes both tables.
+"""
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from mlflow.tracking import MlflowClient
+
+from conftest import ROOT
+from dswm.config import load_config
+
+pytestmark = pytest.mark.integration
+
+SKIP = {".git", ".venv", "results", "logs", ".snakemake", "__pycache__", ".pytest_cache", ".hypothesis", "build"}
+DATASETS = ("milan", "shanghai", "yjmob")
+BASELINES = ("static", "greedy", "oracle")
+METHODS = tuple(load_config(ROOT / "config.yaml")["methods"]["run"])  # every configured method is tabulated
+CONTRACT_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
+                    "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
+                    "dataset"]  # docs/ARCHITECTURE.md, "Results"
+
+
+def snakemake(workdir, *args, timeout=1500):
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    exe = str(Path(sys.executable).parent / "snakemake")
+    return subprocess.run([exe, *args, "--config", "profile=smoke"], cwd=workdir, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A copy of the working tree where the smoke DAG has run (tables and calibrate)."""
+    work = tmp_path_factory.mktemp("smoke") / "repo"
+    shutil.copytree(ROOT, work, ignore=lambda d, names: [n for n in names if n in SKIP or
+                                                         (Path(d).name == "benchmarks" and n == "results")])
+    proc = snakemake(work, "tables", "calibrate", "--cores", "2")
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
+    return work
+
+
+def read_csv(path):
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def seed_score(work, ds, method, split):
+    days = pl.read_parquet(work / "results" / ds / method / "seed0" / "days.parquet")
+    return float(days.filter(pl.col("split") == split)["sr_mean"].mean())
+
+
+def test_both_tables_have_every_method_and_dataset_with_numbers_from_the_result_files(run):
+    main = read_csv(run / "results" / "tables" / "milan_main.csv")
+    assert list(main[0]) == ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std",
+                             "n_seeds"]
+    assert sorted(r["method"] for r in main) == sorted(METHODS)
+    classes = [(r["method"], r["class"]) for r in main if r["method"] in BASELINES]
+    assert classes == [("greedy", "model-free"), ("static", "deployment"), ("oracle", "upper bound")]
+    for r in main:
+        assert float(r["weekday_mean"]) == pytest.approx(seed_score(run, "milan", r["method"], "id"), abs=1e-9)
+        assert float(r["holiday_mean"]) == pytest.approx(seed_score(run, "milan", r["method"], "ood"), abs=1e-9)
+        assert (r["n_seeds"], float(r["weekday_std"])) == ("1", 0.0)
+    cross = read_csv(run / "results" / "tables" / "cross_dataset.csv")
+    assert list(cross[0]) == ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std",
+                              "n_seeds"]
+    assert sorted((r["method"], r["dataset"]) for r in cross) == sorted((m, d) for m in METHODS for d in DATASETS)
+    for r in cross:
+        assert float(r["weekday_mean"]) == pytest.approx(seed_score(run, r["dataset"], r["method"], "id"), abs=1e-9)
+    for name in ("milan_main", "cross_dataset"):
+        for ext in ("md", "tex"):
+            text = (run / "results" / "tables" / f"{name}.{ext}").read_text()
+            assert "profile: smoke" in text and "Milan: demo" in text and "YJMob: demo" in text
+
+
+def test_repositioning_pays_on_every_dataset_and_the_oracle_bounds_greedy(run):
+    for ds in DATASETS:
+        static, greedy, oracle = (seed_score(run, ds, m, "id") for m in BASELINES)
+        assert greedy > static, ds
+        assert oracle > greedy, ds
+
+
+def test_result_files_follow_the_contract(run):
+    for ds in DATASETS:
+        hashes = set()
+        for m in METHODS:
+            d = run / "results" / ds / m / "seed0"
+            days = pl.read_parquet(d / "days.parquet")
+            assert days.columns[: len(CONTRACT_COLUMNS)] == CONTRACT_COLUMNS
+            assert days["split"].to_list() == ["id", "ood"] and set(days["method"]) == {m}
+            assert days["sr_mean"].is_between(0, 1).all() and (days["energy_kj_per_slot"] > 0).all()
+            hashes.add(tuple(days.row(0, named=True)[h] for h in ("obs_spec_hash", "eval_days_hash", "scenario_hash")))
+            traj = np.load(d / "trajectory.npz")
+            assert traj["id_pos"].shape == (144, 16, 2) and traj["ood_pos"].shape == (144, 16, 2)
+            assert int(traj["id_day"]) == days["day"][0] and int(traj["ood_day"]) == days["day"][1]
+            assert not list(d.glob(".*tmp*"))  # no temp file left behind
+        assert len(hashes) == 1, f"{ds}: methods saw different observation specs, days or scenarios"
+
+
+def evaluate_runs(work):
+    client = MlflowClient(tracking_uri="sqlite:///" + str(work / "results" / "mlflow.db"))
+    exp = client.get_experiment_by_name(load_config(work / "config.yaml")["mlflow"]["experiment"])
+    return client, client.search_runs([exp.experiment_id], filter_string="tags.stage = 'evaluate'")
+
+
+def test_every_job_is_one_finished_mlflow_run_and_a_rerun_adds_no_duplicate(run):
+    client, runs = evaluate_runs(run)
+    assert sorted((r.data.tags["dataset"], r.data.tags["method"]) for r in runs) == \
+        sorted((d, m) for d in DATASETS for m in METHODS)
+    for r in runs:
+        assert r.info.status == "FINISHED"
+        assert (r.data.tags["seed"], r.data.tags["profile"]) == ("0", "smoke")
+        assert len(r.data.tags["config_hash"]) == 12 and r.data.tags["git_commit"]
+        assert r.data.params["run.eval_days.id"] == "1"
+        assert {"id/sr_mean", "ood/sr_mean", "day/sr_mean"} <= set(r.data.metrics)
+        assert "days.parquet" in [a.path for a in client.list_artifacts(r.info.run_id)]
+    proc = snakemake(run, "--cores", "1", "--force", "results/yjmob/static/seed0/days.parquet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _, again = evaluate_runs(run)
+    finished = [r for r in again if r.info.status == "FINISHED"]
+    assert len(finished) == len(DATASETS) * len(METHODS)
+    assert sum(r.data.tags["job_key"] == "evaluate/yjmob/static/seed0" for r in finished) == 1
+
+
+def test_config_keeps_the_intensity_the_calibrate_rule_prints(run):
+    report = json.loads((run / "results" / "calibration" / "demand_intensity.json").read_text())
+    cfg = load_config(run / "config.yaml")
+    assert report["dataset"] == "milan" and report["train_days"][0] == "2013-11-01" and len(report["train_days"]) == 10
+    assert report["served_ratio"] == pytest.approx(cfg["calibration"]["target_served_ratio"],
+                                                   abs=cfg["calibration"]["tolerance"])
+    # config.yaml holds the printed value (rounded to 4 significant digits)
+    assert cfg["scenario"]["demand_intensity"] == pytest.approx(report["demand_intensity"], rel=5e-4)
+    assert "calibrated demand_intensity" in (run / "logs" / "calibrate.log").read_text()
