@@ -12,7 +12,8 @@ from dswm.config import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 
-torch.set_num_threads(2)
+# Tests use small tensors: one thread is fastest, and steady on a busy machine.
+torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")
