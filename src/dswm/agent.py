@@ -7,7 +7,10 @@ gradient steps and any planner-size reductions.
 
 Per slot (Algorithm 1): filter o_t into the posterior, then CEM over H-slot sequences scored by
 ``ImaginationScorer`` (anchored imagined demand, fleet propagated by ``dswm.fleet``, service head), and
-execute the first action of the best sequence; the CEM mean is carried to the next slot (warm start).
+execute the first action of the best sequence; the CEM mean is carried to the next slot (warm start). With
+``planner.proposal: bcd`` the population is seeded with a block-coordinate-descent move (the greedy
+baseline's search, as strong as the oracle's) on the ANCHORED IMAGINED next-slot map, i.e. on what the world
+model expects, never on the true next map; ``dswm_wo_dec`` has no proposal (it has no service physics).
 """
 from __future__ import annotations
 

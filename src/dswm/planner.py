@@ -9,6 +9,14 @@ Two parts:
   With ``demand_override`` the true future maps replace the model's (no anchoring, no uncertainty), so the
   score is exactly the discounted SR the environment would realize.
 ``AnchoredCEMPlanner`` keeps the warm start (previous slot's mean, shifted by one step) between slots.
+
+Design choices beyond Algorithm 1 (config.yaml ``dswm.planner`` gives the evidence, from training days):
+- the first step and the later steps have their own initial std (``sigma0``, ``sigma0_later``), so the noise of
+  the continuation does not decide which executed action wins;
+- ``continuation="lloyd"``: later imagined steps add their sampled move to a Lloyd step, so imagined UAVs keep
+  repositioning (e.g. fly back to demand after charging) instead of freezing;
+- the population can be seeded with proposals (``AnchoredCEMPlanner.plan(proposals=...)``); the controller
+  passes a block-coordinate-descent move on the anchored imagined next map (``dswm.agent.BCDProposal``).
 """
 from __future__ import annotations
 
