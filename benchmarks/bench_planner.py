@@ -1,14 +1,16 @@
 """DSWM planning per slot and world-model training throughput.
 
 Run: python benchmarks/bench_planner.py [--threads 2] [--device cpu] [--slots 8]
-Writes benchmarks/results/planner.json (or planner_<device>.json) and planner.png.
+Writes benchmarks/results/planner_<device>_t<threads>.json and .png.
 
 Per-slot planning is timed at the paper's production settings (N_cem=512, 6 iterations, H=15, E=5, K=16,
 G=400 on a 20x20 grid), with the configured proposal and continuation and without them (plain CEM), and at
 the demo and smoke planner sizes of config.yaml; one imagined step is broken down into its parts (RSSM prior,
 demand ensemble + anchoring, fleet kinematics, service physics). Training throughput is gradient steps per
 second at the configured batch and sequence length. Target on a 2-core machine: <= 300 ms per slot.
-Weights are untrained: the cost does not depend on their values. The machine's load average is recorded.
+Weights are untrained: the cost does not depend on their values. The machine's load average is recorded;
+on a shared machine under load, two torch threads can be many times slower than one (OpenMP contention),
+so compare --threads 1 and 2.
 """
 from __future__ import annotations
 
@@ -170,9 +172,9 @@ def main() -> None:
               "per_slot": per_slot, "imagined_step_breakdown_ms": _breakdown(ctl, core, 512),
               "training": _train_throughput(cfg, core, args.device, args.train_steps),
               "target_ms_per_slot": 300}
-    suffix = "" if args.device == "cpu" else f"_{args.device.split(':')[0]}"
-    write(f"planner{suffix}", result)
-    _figure(result, RESULTS / f"planner{suffix}.png")
+    name = f"planner_{args.device.split(':')[0]}_t{args.threads}"
+    write(name, result)
+    _figure(result, RESULTS / f"{name}.png")
 
 
 if __name__ == "__main__":

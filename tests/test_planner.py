@@ -48,7 +48,7 @@ def test_cem_seed_sequence_is_kept_when_it_is_best():
 
 def test_anchor_arithmetic():
     x_now = torch.tensor([1.0, 2.0])
-    members = torch.tensor([[[3.0, 0.0], [5.0, 4.0]]])    # (N=1, E=2, G=2)
+    members = torch.tensor([[[3.0, 0.0]], [[5.0, 4.0]]])  # (E=2, N=1, G=2)
     x_hat, u = anchor(x_now, members, 0.9)
     # heads after anchoring: [1.2, 1.8] and [1.4, 2.2]; mean [1.3, 2.0]; population std [0.1, 0.2]
     torch.testing.assert_close(x_hat, torch.tensor([[1.3, 2.0]]))

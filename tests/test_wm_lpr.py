@@ -59,3 +59,17 @@ def test_variance_margin_prevents_collapse():
     kept = _toy(1.0)
     assert float(free.mean()) < 0.5 * 0.5         # unregularized: collapsing below half the margin
     assert float(kept.min()) > 0.95 * 0.5         # every dimension kept near/above the margin
+
+
+def test_demand_floor_and_head_layouts():
+    from dswm.wm_modules import DemandEnsemble
+    from dswm.world_model import DEMAND_FLOOR, to_demand
+
+    y = torch.tensor([-2.0, 0.0, 5e-5, 2e-4, 1.0])
+    # symexp: [-, 0, 5.00013e-5 (< floor), 2.0002e-4, e - 1]; below the floor -> 0
+    torch.testing.assert_close(to_demand(y), torch.tensor([0.0, 0.0, 0.0, 2.00020001e-4, 1.718281828]))
+    assert DEMAND_FLOOR == 1e-4
+    torch.manual_seed(0)
+    ens = DemandEnsemble(feat_dim=6, n_heads=3, hidden=5, rank=2, n_cells=4)
+    f = torch.randn(7, 6)
+    torch.testing.assert_close(ens(f, heads_first=True), ens(f).transpose(0, 1))

@@ -125,17 +125,16 @@ def anchor(x_now: torch.Tensor, members: torch.Tensor, rho: float) -> tuple[torc
     """Persist anchoring (eq. 18) of every ensemble member and the uncertainty (eq. 17).
 
     Args:
-        x_now: (G,) observed map x_t; members: (N, E, G) predicted maps of the E heads; rho: mixing weight.
+        x_now: (G,) observed map x_t; members: (E, N, G) predicted maps of the E heads; rho: mixing weight.
     Returns:
         (x_hat (N, G): mean over heads of rho x_t + (1 - rho) x_e,
          u (N,): sum over cells of the heads' std of the anchored map / sum over cells of x_hat,
          i.e. the disagreement relative to the demand that is scored, dimensionless like SR).
     """
-    # The anchored heads differ from their mean by (1 - rho) (x_e - mean_e x_e); written this way because a
-    # reduction over the middle axis of (N, E, G) (torch.std(dim=1)) is an order of magnitude slower on CPU.
-    m = members.mean(1)                                          # (N, G)
+    # The anchored heads differ from their mean by (1 - rho) (x_e - mean_e x_e).
+    m = members.mean(0)                                          # (N, G)
     x_hat = rho * x_now + (1.0 - rho) * m                        # (N, G)
-    var = (members - m.unsqueeze(1)).square().mean(1)            # (N, G) population variance over heads
+    var = (members - m).square().mean(0)                         # (N, G) population variance over heads
     spread = (1.0 - rho) * var.sqrt().sum(-1)                    # (N,)
     return x_hat, spread / x_hat.sum(-1).clamp_min(1e-8)
 

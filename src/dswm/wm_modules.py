@@ -75,8 +75,13 @@ class DemandEnsemble(nn.Module):
         self.basis = init(e, rank, n_cells, fan_in=rank)
         self.bias = nn.Parameter(torch.zeros(e, n_cells))
 
-    def forward(self, feat: torch.Tensor) -> torch.Tensor:
-        """Args: feat (N, F).  Returns: (N, E, G) symlog demand of every head."""
+    def forward(self, feat: torch.Tensor, *, heads_first: bool = False) -> torch.Tensor:
+        """Args: feat (N, F).  Returns: symlog demand of every head, (N, E, G), or (E, N, G) if heads_first
+        (the planner's layout: reductions over heads then run over the leading, contiguous axis)."""
+        if heads_first:
+            h = F.elu(torch.einsum("nf,efh->enh", feat, self.w1) + self.b1.unsqueeze(1))
+            coef = torch.einsum("enh,ehr->enr", h, self.w2) + self.b2.unsqueeze(1)
+            return torch.baddbmm(self.bias.unsqueeze(1), coef, self.basis)
         h = F.elu(torch.einsum("nf,efh->neh", feat, self.w1) + self.b1)
         coef = torch.einsum("neh,ehr->ner", h, self.w2) + self.b2
         return torch.einsum("ner,erg->neg", coef, self.basis) + self.bias

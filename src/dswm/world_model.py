@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from dswm.physics import ServiceParams, associate, served_ratio, service
 from dswm.rssm import RSSM, LatentState, RSSMConfig, map_state
-from dswm.wm_modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symexp, symlog,
+from dswm.wm_modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symlog,
                              variance_margin)
 
 SERVICE_HEADS = ("physics", "mlp")
@@ -29,10 +31,15 @@ DEMAND_FLOOR = 1e-4
 physics then treats the cell as empty, and the bandwidth weight x^tau keeps a finite gradient."""
 
 
+_FLOOR_SYMLOG = math.log1p(DEMAND_FLOOR)
+
+
 def to_demand(pred: torch.Tensor) -> torch.Tensor:
-    """Symlog predictions (...) -> non-negative demand, values under ``DEMAND_FLOOR`` set to 0."""
-    x = symexp(pred)
-    return torch.where(x > DEMAND_FLOOR, x, torch.zeros_like(x))
+    """Symlog predictions (...) -> non-negative demand, values under ``DEMAND_FLOOR`` set to 0.
+
+    Equal to ``where(symexp(pred) > DEMAND_FLOOR, symexp(pred), 0)``, written as two fused passes (this runs
+    on N_cem x E x G values per imagined step)."""
+    return torch.expm1(F.threshold(pred, _FLOOR_SYMLOG, 0.0))
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -116,8 +123,8 @@ class WorldModel(nn.Module):
         return out.reshape(*lead, -1)
 
     def demand_members(self, feat: torch.Tensor) -> torch.Tensor:
-        """Non-negative demand of every head, (N, E, G), from features (N, F)."""
-        return to_demand(self.demand(feat))
+        """Non-negative demand of every head, heads first: (E, N, G), from features (N, F)."""
+        return to_demand(self.demand(feat, heads_first=True))
 
     def service_sr(self, feat: torch.Tensor, demand: torch.Tensor, pos: torch.Tensor, avail: torch.Tensor,
                    bw_logit: torch.Tensor) -> torch.Tensor:
