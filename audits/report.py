@@ -7,11 +7,11 @@ names the file and the leak.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from prep.atomic import write_text
 
 FAMILIES = ("splits", "statistics", "protocol", "read-only")
 
@@ -50,15 +50,7 @@ class Check:
 
 def write_atomic(path: Path, text: str) -> None:
     """Writes text to a temp file beside `path`, then renames it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, text)
 
 
 def _jsonable(obj: Any) -> Any:

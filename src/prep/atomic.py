@@ -15,7 +15,8 @@ from typing import Any
 
 def _temp_beside(target: Path) -> Path:
     """Creates an empty temporary file in target's directory with the usual (umask) permissions."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    # The temp name keeps the target's suffix, so writers that infer the format from it behave.
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{target.suffix}", dir=target.parent)
     os.close(fd)
     mask = os.umask(0)
     os.umask(mask)
@@ -71,3 +72,9 @@ def write_json(target: Path | str, obj: Any) -> None:
     """Writes JSON atomically (sorted keys, indented, trailing newline)."""
     with atomic_path(target) as tmp:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def write_text(target: Path | str, text: str) -> None:
+    """Writes a UTF-8 text file atomically."""
+    with atomic_path(target) as tmp:
+        tmp.write_text(text, encoding="utf-8")
