@@ -198,3 +198,27 @@ def test_sr_gradient_points_toward_demand_the_uav_can_still_gain(px, py, g, xg):
     grad = pos.grad[0, 0]
     cos = float(grad @ offset / (grad.norm() * offset.norm()))
     assert cos > 0.999
+
+
+def test_float32_gradients_stay_finite_for_tiny_bandwidth_shares():
+    # A cell with demand 1e-7 next to a hotspot under bw_logit = 1 gets a share of ~1e-13 Hz: N0 * share
+    # underflows float32, and d rate / d share involves 1 / share^2. Gradients must stay finite.
+    x = torch.tensor([1e-7, 5.0, 0.0], dtype=torch.float32, requires_grad=True)
+    pos = torch.tensor([[[100.0, 0.0], [2000.0, 0.0]]], dtype=torch.float32, requires_grad=True)
+    logit = torch.ones(1, 2, dtype=torch.float32, requires_grad=True)
+    res = service(x, pos, torch.ones(1, 2, dtype=torch.bool), CELLS.float(), params=PARAMS, bw_logit=logit)
+    assert float(res.share_hz[0, 0]) < 1e-9
+    res.sr.sum().backward()
+    for grad in (x.grad, pos.grad, logit.grad):
+        assert torch.isfinite(grad).all()
+    # The 1 mHz floor leaves the tiny cell practically unserved (true value ~1e-12; with the floor 0.0033).
+    assert float(res.fulfilment[0, 0].detach()) < 0.01
+
+
+def test_gradients_are_finite_and_zero_for_a_uav_right_above_its_cell():
+    pos = torch.tensor([[[300.0, 0.0]]], dtype=torch.float32, requires_grad=True)
+    x = torch.tensor([0.0, 5.0, 0.0])
+    res = service(x, pos, torch.ones(1, 1, dtype=torch.bool), CELLS.float(), params=ServiceParams(demand_intensity=3000.0))
+    res.sr.sum().backward()
+    assert pos.grad.tolist() == [[[0.0, 0.0]]]  # the apex of the cone: zero subgradient, not NaN
+    assert float(path_loss_db(torch.tensor(100.0, dtype=torch.float64))) == pytest.approx(path_loss_db(100.0), abs=1e-9)

@@ -25,6 +25,10 @@ SPEED_OF_LIGHT_MPS = 299_792_458.0
 # Demand below this (in normalized units, i.e. a 1e-9 fraction of the training p99) counts as no demand:
 # it keeps x^tau and the bandwidth shares finite in float32 and changes no served ratio measurably.
 DEMAND_EPS = 1e-9
+# In the Shannon rate a share below 1 mHz counts as 1 mHz. Such shares only go to cells whose demand is a
+# tiny fraction of their UAV's (x^tau weights), whose fulfilment is ~0 either way; the floor keeps the rate's
+# gradient finite in float32 (d/dB of B log2(1 + c/B) involves c/B^2).
+SHARE_FLOOR_HZ = 1e-3
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -93,24 +97,38 @@ def los_probability(theta_deg, a: float = 9.61, b: float = 0.16):
     return 1.0 / (1.0 + a * math.exp(-b * (float(theta_deg) - a)))
 
 
-def elevation_deg(distance_m, altitude_m: float):
-    """Elevation angle arcsin(h / d) in degrees (tensor or float)."""
+def elevation_deg(distance_m, altitude_m: float, *, horizontal_sq=None):
+    """Elevation angle arcsin(h / d) in degrees (tensor or float).
+
+    For tensors the angle is computed as atan2(h, horizontal distance), with the horizontal distance squared
+    floored at 1e-12 m^2: the angle is a cone over the cell centre, and right above it the floor gives the
+    zero subgradient instead of the infinite slope of arcsin at 1 (which would turn gradients into NaN).
+
+    Args:
+        distance_m: 3-D link distance.
+        altitude_m: flight altitude h.
+        horizontal_sq: optional squared horizontal distance (tensors only; avoids d^2 - h^2 cancellation).
+    """
     if isinstance(distance_m, torch.Tensor):
-        return torch.rad2deg(torch.asin(torch.clamp(altitude_m / distance_m, max=1.0)))
+        if horizontal_sq is None:
+            horizontal_sq = distance_m * distance_m - altitude_m**2
+        horizontal = torch.sqrt(torch.clamp(horizontal_sq, min=1e-12))
+        return torch.rad2deg(torch.atan2(torch.full_like(horizontal, altitude_m), horizontal))
     return math.degrees(math.asin(min(1.0, altitude_m / float(distance_m))))
 
 
-def path_loss_db(distance_m, params: ServiceParams = ServiceParams()):
+def path_loss_db(distance_m, params: ServiceParams = ServiceParams(), *, horizontal_sq=None):
     """Expected path loss in dB: free space plus LoS/NLoS excess losses mixed in dB (paper eq. 2).
 
     Args:
         distance_m: 3-D link distance, float or tensor.
         params: channel constants.
+        horizontal_sq: optional squared horizontal distance of the same links (tensors only).
 
     Returns:
         Path loss in dB, same type and shape as the input.
     """
-    theta = elevation_deg(distance_m, params.altitude_m)
+    theta = elevation_deg(distance_m, params.altitude_m, horizontal_sq=horizontal_sq)
     p_los = los_probability(theta, params.los_a, params.los_b)
     fspl_k = 20.0 * math.log10(4.0 * math.pi * params.carrier_hz / SPEED_OF_LIGHT_MPS)
     if isinstance(distance_m, torch.Tensor):
@@ -178,7 +196,7 @@ def service(
     serving = torch.gather(pos, 1, assoc.unsqueeze(-1).expand(-1, -1, 2))  # (N, G, 2)
     horiz2 = ((serving - cells.to(pos.dtype)) ** 2).sum(-1)
     dist = torch.sqrt(horiz2 + params.altitude_m**2)
-    gain_db = -path_loss_db(dist, params)
+    gain_db = -path_loss_db(dist, params, horizontal_sq=horiz2)
 
     # Bandwidth split over the UAV's associated cells with weights x^tau (zero-demand cells get nothing).
     if bw_logit is None:
@@ -189,10 +207,11 @@ def service(
     weight_sum = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, weight)
     denom = torch.gather(weight_sum, 1, assoc)
     share = params.bandwidth_hz * weight / torch.where(denom > 0, denom, torch.ones_like(denom))
-    share_safe = torch.where(has_demand, share, torch.ones_like(share))
+    share_safe = torch.where(has_demand, share.clamp(min=SHARE_FLOOR_HZ), torch.ones_like(share))
 
     # Shannon rate and capped fulfilment.
-    snr = params.tx_power_w * torch.pow(10.0, gain_db / 10.0) / (params.noise_psd_w_per_hz * share_safe)
+    # (P / N0) first: N0 * B underflows float32 for small shares.
+    snr = (params.tx_power_w / params.noise_psd_w_per_hz) * torch.pow(10.0, gain_db / 10.0) / share_safe
     rate = torch.where(has_demand, share_safe * torch.log2(1.0 + snr), torch.zeros_like(x))
     requested = x_safe * (params.demand_intensity * params.r0_bps)
     fulfil = torch.where(has_demand, torch.clamp(rate / requested, max=1.0), torch.zeros_like(x))

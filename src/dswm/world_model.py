@@ -190,9 +190,7 @@ class WorldModel(nn.Module):
         pos = batch["next_pos"].reshape(t_len * b, self.n_uavs, 2)
         avail = batch["next_avail"].reshape(t_len * b, self.n_uavs)
         bw = act.reshape(t_len * b, self.n_uavs, 3)[..., 2]
-        # float64 here: the gradient of the SNR through a tiny bandwidth share (a cell with tiny predicted
-        # demand under a large bandwidth logit) divides by (N0 * share)^2, which underflows in float32.
-        sr_hat = self.service_sr(feat_next, x_hat.double(), pos.double(), avail, bw.double()).float()
+        sr_hat = self.service_sr(feat_next, x_hat, pos, avail, bw)
         l_serve = ((sr_hat - batch["next_sr"].reshape(-1)) ** 2).mean()
 
         # KL with balancing and free bits.
