@@ -12,8 +12,15 @@ from dswm.config import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 
-# Tests use small tensors: one thread is fastest, and steady on a busy machine.
-torch.set_num_threads(1)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tests use small tensors: one torch thread is fastest, and immune to a busy machine's oversubscription
+    (code under test may set its own thread count; it is restored after each test)."""
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")

@@ -12,15 +12,6 @@ from dswm.physics import ServiceParams, served_ratio
 GRID = Grid(rows=12, cols=12, cell_m=235.0)  # 2820 m square
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one torch thread is faster, and immune to a busy machine's oversubscription."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def ctx(scn, init_pos, demand=None, day=0):
     return DayContext(dataset="toy", day=day, label=f"d{day}", split="id", grid=GRID, scenario=scn,
                       geometry=GRID.geometry(), cells=GRID.cells(), init_pos=np.asarray(init_pos, np.float32),

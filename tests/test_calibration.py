@@ -17,14 +17,6 @@ from dswm.physics import ServiceParams, served_ratio
 from prep.tensor import DemandTensor, GridSpec
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def tensor(n_train=2, n_test=1, rows=5, cols=5, seed=3):
     rng = np.random.default_rng(seed)
     n = n_train + n_test

@@ -13,15 +13,6 @@ from prep.tensor import DemandTensor, GridSpec
 HOVER_W = 168.48  # SPEC section 1: hover power of the rotary-wing model
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one torch thread is faster, and immune to a busy machine's oversubscription."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def toy_tensor(n_train=3, n_test=4, rows=6, cols=6, seed=0):
     """A small prepared-tensor stand-in: days 0..n_train-1 train, the rest test; ID = test 0,1; OOD = 2,3."""
     rng = np.random.default_rng(seed)

@@ -1,6 +1,5 @@
 """Observation-anchored CEM planner: CEM core, anchoring arithmetic, scorer plumbing, and the agreement of
 imagination with the environment when the true demand is supplied."""
-import math
 
 import numpy as np
 import pytest
@@ -14,14 +13,6 @@ from dswm.planner import AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, a
 from dswm.rssm import RSSMConfig
 from dswm.wm_modules import symlog
 from dswm.world_model import WorldModel, WorldModelConfig
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 def test_cem_finds_known_optimum():

@@ -1,7 +1,6 @@
 """DSWMController through the controller interface: build from config, fit, save/load, act; ablations."""
 import numpy as np
 import pytest
-import torch
 import yaml
 
 from conftest import ROOT
@@ -9,14 +8,6 @@ from dswm import controllers, runconfig
 from dswm.controllers import DayContext
 from dswm.core import FleetCore, Grid, initial_positions
 from dswm.env import synthetic_demand
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 @pytest.fixture(scope="module")

@@ -17,14 +17,6 @@ from prep.tensor import load
 from conftest import ROOT
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 @pytest.fixture(scope="module")
 def demo_core(tmp_path_factory):
     """A training-days core over two Milan demo training days (generated and prepared by the prep code)."""
