@@ -67,10 +67,10 @@ def test_build_passes_the_method_section_as_keyword_arguments(resolved):
     assert o.bw_logits[0] == 0.0 and sorted(o.bw_logits) == sorted(resolved["methods"]["oracle"]["bw_logits"])
 
 
-def test_only_the_oracle_is_clairvoyant_and_nothing_here_learns(resolved):
+def test_only_the_oracle_is_clairvoyant_and_only_dswm_variants_learn(resolved):
     classes = controllers.check_methods(resolved)
     assert [n for n, c in classes.items() if c.clairvoyant] == ["oracle"]
-    assert not any(c.learns for c in classes.values())
+    assert sorted(n for n, c in classes.items() if c.learns) == ["dswm", "dswm_wo_dec", "dswm_wo_unc"]
 
 
 def test_unregistered_method_names_the_key_and_the_expected_form(resolved):
