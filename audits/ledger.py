@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import builtins
 import contextlib
-import hashlib
 import io
 import json
 import os
@@ -20,20 +19,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from prep.rawio import sha256_file  # reads in binary, read-only mode
+
 _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_TRUNC
 
 
 class ReadOnlyViolation(PermissionError):
     """Something tried to open an audited file for writing."""
-
-
-def sha256_file(path: Path, chunk: int = 8 << 20) -> str:
-    """Hex SHA-256 of a file, read in binary read-only mode."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 @dataclass(frozen=True, kw_only=True)
