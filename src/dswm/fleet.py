@@ -22,7 +22,6 @@ from dswm.config import Scenario
 from dswm.energy import rotor_power
 
 ACTIVE, RETURNING, CHARGING = 0, 1, 2
-STATUS_NAMES = ("active", "returning", "charging")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -67,10 +66,6 @@ class FleetState(NamedTuple):
     def expand(self, n: int) -> "FleetState":
         """Repeat a single (K, ...) state into a batch of n identical states (N, K, ...)."""
         return FleetState(*(t.unsqueeze(0).expand(n, *t.shape).clone() for t in self))
-
-    def index(self, idx) -> "FleetState":
-        """Select along the leading batch axis."""
-        return FleetState(*(t[idx] for t in self))
 
 
 def available(state: FleetState) -> torch.Tensor:
