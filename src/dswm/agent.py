@@ -174,7 +174,7 @@ class DSWMController(Controller):
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,
                 "n_transitions": replay.n_transitions, "steps": int(budget["steps"]),
-                "data_files_read": [], "checkpoint": str(ckpt),
+                "checkpoint": str(ckpt),
                 "checkpoint_written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ckpt.stat().st_mtime)),
                 "read_test_data": False, "history": history}
 

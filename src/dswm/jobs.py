@@ -1,6 +1,7 @@
 """The workflow's jobs, wired from the library parts; each ``workflow/scripts/*.py`` calls one of these.
 
-* :func:`train_job`     fit a learning method on the TRAINING days; model file + train_manifest.json.
+* :func:`train_job`     fit a learning method on the TRAINING days; model file + train_manifest.json (with the
+                        SHA-256 of the checkpoint, the model file and every prepared file it read).
 * :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet + trajectory.npz.
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
@@ -20,6 +21,7 @@ from dswm import calibration, controllers, evaluation, runconfig, tables, tracki
 from dswm.atomic import atomic_path, save_npz, write_json
 from dswm.config import Scenario
 from dswm.core import FleetCore, Grid
+from prep.rawio import sha256_file
 
 DAY_METRICS = ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot")
 
@@ -28,6 +30,30 @@ def _load_tensor(tensor_dir: str | Path):
     from prep.tensor import load
 
     return load(tensor_dir)
+
+
+def _workdir_relative(path: str | Path) -> str:
+    """``path`` relative to the working directory (the workflow's root, where the audit resolves it), POSIX."""
+    p = Path(path)
+    if p.is_absolute():
+        try:
+            p = p.relative_to(Path.cwd())
+        except ValueError:
+            pass
+    return p.as_posix()
+
+
+def prepared_files_read(tensor_dir: str | Path) -> list[dict]:
+    """The ``data_files_read`` of a training manifest: the files ``prep.tensor.load`` reads from ``tensor_dir``.
+
+    Returns:
+        [{"path": path relative to the working directory, "sha256": hex SHA-256 of the file}] for
+        demand.parquet and meta.json, hashed before the job loads them.
+    """
+    from prep.tensor import META_FILE, TENSOR_FILE
+
+    return [{"path": _workdir_relative(Path(tensor_dir) / name), "sha256": sha256_file(Path(tensor_dir) / name)}
+            for name in (TENSOR_FILE, META_FILE)]
 
 
 def _setup(config: Mapping[str, Any]) -> tuple[dict, Scenario]:
@@ -52,10 +78,15 @@ def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str
               model_out: str | Path, manifest_out: str | Path, run_dir: str | Path, repo: str | Path) -> dict:
     """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
 
+    The manifest is what ``fit`` returns plus ``checkpoint_sha256`` (the checkpoint ``fit`` recorded, hashed when
+    it returned), ``model``, ``model_sha256`` (``model_out`` once saved) and ``data_files_read``
+    (:func:`prepared_files_read`); it is written last, so every file it hashes is complete (docs/ARCHITECTURE.md).
+
     Returns:
         The manifest written (without the loss history, which goes to MLflow).
     """
     resolved, scenario = _setup(config)
+    data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
     cls = controllers.controller_class(method, resolved)
     budget = cls.budget_from_config(name=method, config=resolved)
@@ -69,8 +100,15 @@ def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str
         steps = history.pop("step", None)
         for name, values in history.items():
             run.log_series(name, values, steps)
+        ckpt = manifest.get("checkpoint")
+        if ckpt:
+            if not Path(ckpt).is_file():
+                raise FileNotFoundError(f"{manifest_out}: {method}.fit() recorded checkpoint {ckpt}, which does "
+                                        f"not exist; expected the file training ended with")
+            manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
         ctrl.save(model_out)
         manifest.setdefault("model", str(model_out))
+        manifest.update(model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
         write_json(manifest_out, manifest)
         run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
                          "train/steps": float(manifest.get("steps", 0))})
