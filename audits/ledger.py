@@ -77,6 +77,14 @@ class ReadLedger:
             self.before[p] = Fingerprint.of(p)
         return p
 
+    def sha256(self, path: Path | str) -> str:
+        """The file's SHA-256 as fingerprinted before its first read (tracks it; hashed once per audit).
+
+        Raises:
+            FileNotFoundError: the file does not exist (the message names it).
+        """
+        return self.before[self.track(path)].sha256
+
     def read_bytes(self, path: Path | str) -> bytes:
         """The file's bytes (opened "rb")."""
         with open(self.track(path), "rb") as fh:

@@ -5,8 +5,10 @@
 * `check_result_days`: every result file holds exactly the configured ID and OOD days of its dataset.
 * `check_training_days`: every learning method's training manifest records the day of its pre-collected or
   replayed data, and every such day is a training day.
-* `check_checkpoints`: no checkpoint was written after training ended (when evaluation starts reading
-  test-day data), and training declares that it read no test data.
+* `check_checkpoints`: the checkpoint and the model file hash to the SHA-256 the training manifest recorded when
+  training ended, and every prepared file training read still hashes to the value recorded when it was read
+  (so no checkpoint, model or training input changed once evaluation began reading test-day data); file times
+  agree; training declares that it read no test data.
 """
 from __future__ import annotations
 
@@ -24,6 +26,11 @@ RESULT_COLUMNS = ("day", "label", "split", "sr_mean", *HASH_COLUMNS, "seed", "me
 CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt", ".safetensors")
 CLOCK_SLACK_S = 1.0
 """checkpoint_written_at is recorded to the second: a file time within 1 s of it is the same write."""
+HASH_KEYS = ("checkpoint_sha256", "model_sha256")
+"""Content hashes `dswm.jobs.train_job` records; a manifest without them predates content hashing."""
+MODEL_FILE = "model.pt"
+"""The model file of a run directory: the train rule's `model` output, the file the evaluate rule loads."""
+EVAL_OUTPUTS = ("days.parquet", "trajectory.npz")
 HASH_LEAK = {"obs_spec_hash": "a different observation spec", "eval_days_hash": "different eval days",
                     "scenario_hash": "different scenario constants"}
 
@@ -186,13 +193,100 @@ def _parse_utc(text: str) -> float:
     return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc).timestamp()
 
 
+def _under_root(ctx: AuditContext, recorded) -> Path:
+    """A path a manifest records (relative to the workflow's working directory, or absolute)."""
+    p = Path(str(recorded))
+    return p if p.is_absolute() else ctx.root / p
+
+
+def _same_hash(chk: Check, ctx: AuditContext, path: Path, recorded, *, where: str, key: str, leak: str) -> dict:
+    """Compares the SHA-256 of `path` now with the value `where` records under `key`; returns the evidence.
+
+    Nothing is compared when no value is recorded (check_checkpoints reports the missing key once).
+    """
+    found = ctx.ledger.sha256(path)
+    if recorded and found != recorded:
+        chk.fail(f"{ctx.rel(path)}: SHA-256 is {found}, {where} recorded {key} = {recorded} — {leak}")
+    return {"recorded": recorded, "found": found}
+
+
+def _checkpoint(chk: Check, ctx: AuditContext, man: dict, where: str) -> dict:
+    """The recorded checkpoint exists, hashes to checkpoint_sha256 and carries the recorded write time."""
+    ck = man.get("checkpoint")
+    if not ck:
+        chk.fail(f"{where}: no checkpoint recorded")
+        return {}
+    cpath = _under_root(ctx, ck)
+    if not cpath.is_file():
+        chk.fail(f"{where}: recorded checkpoint {ck} does not exist")
+        return {}
+    written = cpath.stat().st_mtime
+    ev = {"checkpoint_sha256": _same_hash(chk, ctx, cpath, man.get("checkpoint_sha256"), where=where,
+                                          key="checkpoint_sha256",
+                                          leak="the checkpoint was rewritten after training ended"),
+          "checkpoint_mtime": written}
+    rec = man.get("checkpoint_written_at")
+    try:
+        rec_t = _parse_utc(str(rec))
+    except ValueError:
+        chk.fail(f"{where}: checkpoint_written_at = {rec!r}; expected YYYY-MM-DDTHH:MM:SSZ")
+        return ev
+    if not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
+        chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
+                 f"checkpoint was rewritten after training ended")
+    return ev
+
+
+def _model(chk: Check, ctx: AuditContext, man: dict, where: str, run: Path) -> dict:
+    """The manifest names the run's model.pt, which hashes to model_sha256."""
+    mpath = run / MODEL_FILE
+    rec = man.get("model")
+    if rec and _under_root(ctx, rec).resolve() != mpath.resolve():
+        chk.fail(f"{where}: model = {rec!r}; expected {ctx.rel(mpath)}, the file the evaluation loads")
+    if not mpath.is_file():
+        chk.fail(f"{ctx.rel(mpath)}: missing; the evaluation of a learning method loads it")
+        return {}
+    return {"model_sha256": _same_hash(chk, ctx, mpath, man.get("model_sha256"), where=where, key="model_sha256",
+                                       leak="the model file was rewritten after training ended")}
+
+
+def _data_files(chk: Check, ctx: AuditContext, man: dict, where: str, ds: str) -> dict:
+    """data_files_read lists {path, sha256} of the dataset's prepared files, each unchanged since training."""
+    entries = man.get("data_files_read")
+    if (not isinstance(entries, list) or not entries or
+            not all(isinstance(e, dict) and {"path", "sha256"} <= set(e) for e in entries)):
+        chk.fail(f"{where}: data_files_read = {entries!r}; expected a list of {{path, sha256}} of the prepared "
+                 f"files training read — the manifest predates content hashing; re-run the train job")
+        return {}
+    ev = {}
+    for e in entries:
+        path = _under_root(ctx, e["path"])
+        if path.name in EVAL_OUTPUTS:
+            chk.fail(f"{where}: training read evaluation output {e['path']}")
+        if not path.is_file():
+            chk.fail(f"{where}: data_files_read names {e['path']}, which does not exist; expected the file "
+                     f"training read, unchanged")
+            continue
+        ev[ctx.rel(path)] = _same_hash(chk, ctx, path, e["sha256"], where=where,
+                                       key=f"data_files_read[{e['path']!r}].sha256",
+                                       leak="a training input changed after training")
+    read = {_under_root(ctx, e["path"]).resolve() for e in entries}
+    for need in (ctx.tensor_path(ds), ctx.meta_path(ds)):
+        if need.resolve() not in read:
+            chk.fail(f"{where}: data_files_read lacks {ctx.rel(need)}; expected the prepared files of {ds} "
+                     f"the train job loads")
+    return ev
+
+
 def check_checkpoints(ctx: AuditContext) -> Check:
-    """No checkpoint written after training ended; training declares no test data read."""
+    """Checkpoint, model and training inputs unchanged since training; training declares no test data read."""
     chk = Check(id="protocol.checkpoints", family="protocol",
-                tolerance=f"file times within {CLOCK_SLACK_S:g} s (checkpoint_written_at is recorded to the second)",
-                claim="Every learning run's checkpoints were written before its training manifest closed (before any "
-                      "evaluation read test-day data), the recorded checkpoint is the file on disk, and training "
-                      "declares it read no test data.")
+                tolerance=f"contents: SHA-256 equal; file times within {CLOCK_SLACK_S:g} s "
+                          f"(checkpoint_written_at is recorded to the second)",
+                claim="Every learning run's checkpoint and model file hash to the SHA-256 its training manifest "
+                      "recorded when training ended, and the prepared tensor and meta.json it read hash to the "
+                      "values recorded when it read them, so none changed once evaluation began reading test-day "
+                      "data; no checkpoint file is newer than the manifest; training declares it read no test data.")
     for ds, method, seed in learning_jobs(ctx):
         try:
             mpath, man = _manifest(ctx, ds, method, seed)
@@ -205,28 +299,13 @@ def check_checkpoints(ctx: AuditContext) -> Check:
         elif man["read_test_data"] is not False:
             chk.fail(f"{where}: read_test_data = {man['read_test_data']!r}; expected false — training read "
                      f"test-day data")
+        missing = [k for k in HASH_KEYS if not man.get(k)]
+        if missing:
+            chk.fail(f"{where}: no {' or '.join(missing)} recorded — the manifest predates content hashing; "
+                     f"re-run the train job of {ds}/{method}/seed{seed}")
         closed = mpath.stat().st_mtime
-        ck = man.get("checkpoint")
-        ev: dict = {"manifest_closed": closed}
-        if not ck:
-            chk.fail(f"{where}: no checkpoint recorded")
-        else:
-            cpath = Path(ck) if Path(ck).is_absolute() else ctx.root / ck
-            if not cpath.is_file():
-                chk.fail(f"{where}: recorded checkpoint {ck} does not exist")
-            else:
-                ctx.ledger.track(cpath)
-                written = cpath.stat().st_mtime
-                ev["checkpoint_mtime"] = written
-                rec = man.get("checkpoint_written_at")
-                try:
-                    rec_t = _parse_utc(str(rec))
-                except ValueError:
-                    chk.fail(f"{where}: checkpoint_written_at = {rec!r}; expected YYYY-MM-DDTHH:MM:SSZ")
-                    rec_t = None
-                if rec_t is not None and not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
-                    chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
-                             f"checkpoint was rewritten after training ended")
+        ev: dict = {"manifest_closed": closed, **_checkpoint(chk, ctx, man, where), **_model(chk, ctx, man, where, run),
+                    "data_files_read": _data_files(chk, ctx, man, where, ds)}
         for f in sorted(run.rglob("*")) if run.is_dir() else []:
             if f.is_file() and f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
                 chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
@@ -235,11 +314,6 @@ def check_checkpoints(ctx: AuditContext) -> Check:
         if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
             chk.fail(f"{ctx.rel(result)}: written before its training manifest closed — the evaluation did not "
                      f"use the final checkpoint")
-        files = [str(p) for p in man.get("data_files_read", [])]
-        bad = [p for p in files if Path(p).name in ("days.parquet", "trajectory.npz")]
-        if bad:
-            chk.fail(f"{where}: training read evaluation output(s) {bad}")
-        ev["data_files_read"] = files
         chk.evidence[f"{ds}/{method}/seed{seed}"] = ev
     return chk
 

@@ -185,10 +185,17 @@ def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs
 
 def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, days: list[int] | None = None) -> Path:
     """Writes what the train rule leaves for a learning job: train/checkpoint.pt, model.pt and
-    train_manifest.json (recording training days only unless `days` is given), in that order in time."""
-    from prep.tensor import load
+    train_manifest.json (recording training days only unless `days` is given), in that order in time. The
+    manifest records the SHA-256 of both files and of the prepared tensor and meta.json, as `dswm.jobs.train_job`
+    does."""
+    from prep.atomic import write_json
+    from prep.rawio import sha256_file
+    from prep.tensor import META_FILE, TENSOR_FILE, load
 
-    t = load(root / "results" / "data" / ds)
+    data_dir = root / "results" / "data" / ds
+    data_files = [{"path": f"results/data/{ds}/{name}", "sha256": sha256_file(data_dir / name)}
+                  for name in (TENSOR_FILE, META_FILE)]
+    t = load(data_dir)
     train = list(map(int, t.train_days))
     days = days if days is not None else train + train[:2]
     run = root / "results" / ds / method / f"seed{seed}"
@@ -199,11 +206,12 @@ def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, da
     os.utime(ckpt, (T0, T0))
     os.utime(model, (T0 + 5, T0 + 5))
     manifest = {"days": days, "day_labels": [t.labels[d] for d in days], "transitions_per_day_episode": 143,
-                "n_transitions": 143 * len(days), "steps": 10, "data_files_read": [], "checkpoint": str(ckpt.relative_to(root)),
+                "n_transitions": 143 * len(days), "steps": 10, "data_files_read": data_files,
+                "checkpoint": str(ckpt.relative_to(root)), "checkpoint_sha256": sha256_file(ckpt),
                 "checkpoint_written_at": dt.datetime.fromtimestamp(T0, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-                "read_test_data": False, "model": str(model.relative_to(root))}
+                "read_test_data": False, "model": str(model.relative_to(root)), "model_sha256": sha256_file(model)}
     path = run / "train_manifest.json"
-    path.write_text(json.dumps(manifest, indent=2))
+    write_json(path, manifest)
     os.utime(path, (T0 + 10, T0 + 10))
     return path
 

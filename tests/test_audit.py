@@ -180,6 +180,87 @@ def test_checkpoint_written_after_training_ended(tree):
     assert len([m for m in chk.failures if "milan" in m]) == 0
 
 
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def rewrite_keeping_time(path: Path, data: bytes) -> None:
+    """Replaces a file's content and sets its modification time back to what it was."""
+    st = path.stat()
+    path.write_bytes(data)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def test_clean_checkpoints_are_proven_by_their_hashes(clean):
+    root, cfg = clean
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert chk.passed, chk.failures
+    run_dir = root / "results/milan/dswm/seed0"
+    ev = chk.evidence["milan/dswm/seed0"]
+    assert ev["checkpoint_sha256"] == {"recorded": sha(run_dir / "train/checkpoint.pt"),
+                                       "found": sha(run_dir / "train/checkpoint.pt")}
+    assert ev["model_sha256"]["found"] == ev["model_sha256"]["recorded"] == sha(run_dir / "model.pt")
+    assert ev["data_files_read"] == {f"results/data/milan/{n}": {"recorded": sha(root / "results/data/milan" / n),
+                                                                 "found": sha(root / "results/data/milan" / n)}
+                                     for n in ("demand.parquet", "meta.json")}
+
+
+def test_checkpoint_rewritten_with_its_file_time_restored(tree):
+    root, cfg = tree
+    ckpt = root / "results/yjmob/dswm/seed0/train/checkpoint.pt"
+    before = sha(ckpt)
+    rewrite_keeping_time(ckpt, b"rewritten during evaluation")
+    assert ckpt.stat().st_mtime == T0  # the file times alone no longer show the rewrite
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert chk.failures == [
+        f"results/yjmob/dswm/seed0/train/checkpoint.pt: SHA-256 is {sha(ckpt)}, "
+        f"results/yjmob/dswm/seed0/train_manifest.json recorded checkpoint_sha256 = {before} — the checkpoint was "
+        f"rewritten after training ended"]
+
+
+def test_model_file_rewritten_with_its_file_time_restored(tree):
+    root, cfg = tree
+    model = root / "results/milan/dswm/seed0/model.pt"
+    before = sha(model)
+    rewrite_keeping_time(model, b"another model")
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert chk.failures == [
+        f"results/milan/dswm/seed0/model.pt: SHA-256 is {sha(model)}, results/milan/dswm/seed0/train_manifest.json "
+        f"recorded model_sha256 = {before} — the model file was rewritten after training ended"]
+
+
+def test_training_input_changed_after_training(tree):
+    root, cfg = tree
+    meta = root / "results/data/yjmob/meta.json"
+    before = sha(meta)
+    meta.write_text(json.dumps(json.loads(meta.read_text()), indent=4))  # same content, other bytes
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert msg.startswith(f"results/data/yjmob/meta.json: SHA-256 is {sha(meta)}, "
+                          f"results/yjmob/dswm/seed0/train_manifest.json recorded data_files_read")
+    assert f"= {before} — a training input changed after training" in msg
+
+
+@pytest.mark.parametrize("key", ["checkpoint_sha256", "data_files_read"])
+def test_manifest_that_predates_hashing(tree, key):
+    root, cfg = tree
+    path = root / "results/milan/dswm/seed0/train_manifest.json"
+    man = json.loads(path.read_text())
+    if key == "data_files_read":
+        man[key] = []  # what the train job recorded before it hashed its inputs
+    else:
+        del man[key]
+    path.write_text(json.dumps(man))
+    os.utime(path, (T0 + 10, T0 + 10))
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert msg.startswith("results/milan/dswm/seed0/train_manifest.json: ")
+    assert "the manifest predates content hashing" in msg and "re-run the train job" in msg
+    assert (f"no {key} recorded" if key == "checkpoint_sha256" else "data_files_read = []") in msg
+
+
 def test_initial_positions_from_all_days(tree):
     root, cfg = tree
     from dswm.config import Scenario
