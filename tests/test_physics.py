@@ -222,3 +222,19 @@ def test_gradients_are_finite_and_zero_for_a_uav_right_above_its_cell():
     res.sr.sum().backward()
     assert pos.grad.tolist() == [[[0.0, 0.0]]]  # the apex of the cone: zero subgradient, not NaN
     assert float(path_loss_db(torch.tensor(100.0, dtype=torch.float64))) == pytest.approx(path_loss_db(100.0), abs=1e-9)
+
+
+def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_index():
+    from dswm.physics import associate
+
+    gen = torch.Generator().manual_seed(3)
+    cells = torch.rand(50, 2, generator=gen, dtype=torch.float64) * 3000
+    pos = torch.rand(64, 7, 2, generator=gen, dtype=torch.float64) * 3000
+    avail = torch.rand(64, 7, generator=gen) > 0.3
+    avail[:, 0] = True
+    dist = torch.cdist(cells.unsqueeze(0).expand(64, -1, -1), pos).masked_fill(~avail.unsqueeze(1), float("inf"))
+    assert torch.equal(associate(pos, avail, cells), dist.argmin(-1))
+    # UAVs 2 and 5 at the same spot, alone near the cells: every cell goes to UAV 2.
+    twin = torch.tensor([[[5e4, 5e4]] * 2 + [[100.0, 100.0]] + [[5e4, 5e4]] * 2 + [[100.0, 100.0]] + [[5e4, 5e4]]],
+                        dtype=torch.float64)
+    assert associate(twin, torch.ones(1, 7, dtype=torch.bool), cells[:5]).tolist() == [[2] * 5]

@@ -82,6 +82,15 @@ class ServiceResult(NamedTuple):
     """(N, G) bandwidth given to the cell."""
 
 
+_LN10_OVER_10 = math.log(10.0) / 10.0
+
+
+def _snr_hz_constant(params: ServiceParams) -> float:
+    """(P / N0) * (c / (4 pi f))^2: SNR x bandwidth at 1 m^2 squared distance, before the excess loss."""
+    wavelength_over_4pi = SPEED_OF_LIGHT_MPS / (4.0 * math.pi * params.carrier_hz)
+    return params.tx_power_w / params.noise_psd_w_per_hz * wavelength_over_4pi**2
+
+
 def los_probability(theta_deg, a: float = 9.61, b: float = 0.16):
     """LoS probability 1 / (1 + a exp(-b (theta - a))) with the elevation angle in DEGREES.
 
@@ -100,20 +109,20 @@ def los_probability(theta_deg, a: float = 9.61, b: float = 0.16):
 def elevation_deg(distance_m, altitude_m: float, *, horizontal_sq=None):
     """Elevation angle arcsin(h / d) in degrees (tensor or float).
 
-    For tensors the angle is computed as atan2(h, horizontal distance), with the horizontal distance squared
+    For tensors the angle is computed as atan(h / horizontal distance), with the horizontal distance squared
     floored at 1e-12 m^2: the angle is a cone over the cell centre, and right above it the floor gives the
     zero subgradient instead of the infinite slope of arcsin at 1 (which would turn gradients into NaN).
 
     Args:
-        distance_m: 3-D link distance.
+        distance_m: 3-D link distance (may be None for tensors when ``horizontal_sq`` is given).
         altitude_m: flight altitude h.
         horizontal_sq: optional squared horizontal distance (tensors only; avoids d^2 - h^2 cancellation).
     """
-    if isinstance(distance_m, torch.Tensor):
+    if isinstance(distance_m, torch.Tensor) or horizontal_sq is not None:
         if horizontal_sq is None:
             horizontal_sq = distance_m * distance_m - altitude_m**2
         horizontal = torch.sqrt(torch.clamp(horizontal_sq, min=1e-12))
-        return torch.rad2deg(torch.atan2(torch.full_like(horizontal, altitude_m), horizontal))
+        return torch.atan(altitude_m / horizontal) * (180.0 / math.pi)
     return math.degrees(math.asin(min(1.0, altitude_m / float(distance_m))))
 
 
@@ -148,16 +157,24 @@ def associate(pos: torch.Tensor, available: torch.Tensor, cells: torch.Tensor) -
 
     Returns:
         (N, G) int64 index of the nearest available UAV (arbitrary where none is available).
+
+    The squared distance is compared as |p|^2 - 2 c.p (the |c|^2 term does not change the argmin over UAVs);
+    ties go to the lowest UAV index. One baddbmm gives the (N, K, G) distances, their minimum over UAVs
+    is taken along the middle axis (vectorized over cells), and the first UAV that attains it is found with a
+    byte-weighted max (``min(...).indices`` and argmin over a short axis are several times slower on CPU).
     """
     with torch.no_grad():
         p = pos.detach()
-        n = p.shape[0]
-        # |c - p|^2 = |c|^2 - 2 c.p + |p|^2; the |c|^2 term does not change the argmin over UAVs.
+        n, k = p.shape[:2]
         p_sq = (p * p).sum(-1).masked_fill(~available, float("inf"))  # (N, K)
-        c = cells.to(p.dtype).unsqueeze(0).expand(n, -1, -1)  # (N, G, 2)
-        d2 = torch.baddbmm(p_sq.unsqueeze(1), c, p.transpose(1, 2), alpha=-2.0)  # (N, G, K)
-        # min(...).indices is markedly faster than argmin over a short trailing axis on CPU.
-        return d2.min(dim=-1).indices
+        c = cells.to(p.dtype)
+        c_t = (-2.0 * c).T.unsqueeze(0).expand(n, -1, -1)                        # (N, 2, G)
+        d2 = torch.baddbmm(p_sq.unsqueeze(2), p, c_t)                            # (N, K, G)
+        hit = d2 <= d2.amin(dim=1, keepdim=True)                                 # (N, K, G) attains the min
+        # First hit = largest weight K-1-j among the hits.
+        wdtype = torch.uint8 if k <= 256 else torch.int32
+        weight = torch.arange(k - 1, -1, -1, dtype=wdtype, device=p.device).view(1, k, 1)
+        return (k - 1) - (hit * weight).amax(dim=1).long()
 
 
 def service(
@@ -192,17 +209,24 @@ def service(
     has_demand = x > 0
     x_safe = torch.where(has_demand, x, torch.ones_like(x))
 
-    # Channel of the associated pair only: O(N*G) transcendental work.
-    serving = torch.gather(pos, 1, assoc.unsqueeze(-1).expand(-1, -1, 2))  # (N, G, 2)
-    horiz2 = ((serving - cells.to(pos.dtype)) ** 2).sum(-1)
-    dist = torch.sqrt(horiz2 + params.altitude_m**2)
-    gain_db = -path_loss_db(dist, params, horizontal_sq=horiz2)
+    # Channel of the associated pair only: O(N*G) transcendental work. The linear gain 10^(-PL/10) of
+    # ``path_loss_db`` is written as (lambda / 4 pi)^2 / d^2 * 10^(-excess/10): no log10 and no pow per pair.
+    c = cells.to(pos.dtype)
+    dx = torch.gather(pos[..., 0], 1, assoc) - c[:, 0]  # (N, G) serving UAV minus cell centre
+    dy = torch.gather(pos[..., 1], 1, assoc) - c[:, 1]
+    horiz2 = dx * dx + dy * dy
+    dist2 = horiz2 + params.altitude_m**2
+    theta = elevation_deg(None, params.altitude_m, horizontal_sq=horiz2)
+    p_los = los_probability(theta, params.los_a, params.los_b)
+    excess_db = params.eta_nlos_db + p_los * (params.eta_los_db - params.eta_nlos_db)
+    # (P / N0) first: N0 * B underflows float32 for small shares.
+    snr_hz = _snr_hz_constant(params) * torch.exp(excess_db * (-_LN10_OVER_10)) / dist2  # SNR x bandwidth
 
     # Bandwidth split over the UAV's associated cells with weights x^tau (zero-demand cells get nothing).
     if bw_logit is None:
         weight = torch.where(has_demand, x, torch.zeros_like(x))
     else:
-        tau = torch.exp(torch.gather(bw_logit.to(pos.dtype), 1, assoc))
+        tau = torch.gather(torch.exp(bw_logit.to(pos.dtype)), 1, assoc)   # exp on (N, K), then per cell
         weight = torch.where(has_demand, torch.exp(tau * torch.log(x_safe)), torch.zeros_like(x))
     weight_sum = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, weight)
     denom = torch.gather(weight_sum, 1, assoc)
@@ -210,11 +234,9 @@ def service(
     share_safe = torch.where(has_demand, share.clamp(min=SHARE_FLOOR_HZ), torch.ones_like(share))
 
     # Shannon rate and capped fulfilment.
-    # (P / N0) first: N0 * B underflows float32 for small shares.
-    snr = (params.tx_power_w / params.noise_psd_w_per_hz) * torch.pow(10.0, gain_db / 10.0) / share_safe
-    rate = torch.where(has_demand, share_safe * torch.log2(1.0 + snr), torch.zeros_like(x))
+    rate = torch.where(has_demand, share_safe * torch.log2(1.0 + snr_hz / share_safe), torch.zeros_like(x))
     requested = x_safe * (params.demand_intensity * params.r0_bps)
-    fulfil = torch.where(has_demand, torch.clamp(rate / requested, max=1.0), torch.zeros_like(x))
+    fulfil = torch.clamp(rate / requested, max=1.0)  # 0 without demand: rate 0 over requested 1
 
     any_available = available.any(dim=-1)  # (N,)
     fulfil = fulfil * any_available.unsqueeze(-1).to(fulfil.dtype)

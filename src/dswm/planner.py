@@ -132,9 +132,16 @@ def anchor(x_now: torch.Tensor, members: torch.Tensor, rho: float) -> tuple[torc
          i.e. the disagreement relative to the demand that is scored, dimensionless like SR).
     """
     # The anchored heads differ from their mean by (1 - rho) (x_e - mean_e x_e).
-    m = members.mean(0)                                          # (N, G)
+    e = members.shape[0]
+    m = members.sum(0) / e                                       # (N, G)
     x_hat = rho * x_now + (1.0 - rho) * m                        # (N, G)
-    var = (members - m).square().mean(0)                         # (N, G) population variance over heads
+    # Population variance over heads, one head at a time: broadcasting (E, N, G) against (N, G) and
+    # reducing over the leading axis is several times slower on CPU.
+    var = torch.zeros_like(m)
+    for j in range(e):
+        d = members[j] - m
+        var.addcmul_(d, d)
+    var /= e                                                     # (N, G)
     spread = (1.0 - rho) * var.sqrt().sum(-1)                    # (N,)
     return x_hat, spread / x_hat.sum(-1).clamp_min(1e-8)
 

@@ -37,9 +37,10 @@ _FLOOR_SYMLOG = math.log1p(DEMAND_FLOOR)
 def to_demand(pred: torch.Tensor) -> torch.Tensor:
     """Symlog predictions (...) -> non-negative demand, values under ``DEMAND_FLOOR`` set to 0.
 
-    Equal to ``where(symexp(pred) > DEMAND_FLOOR, symexp(pred), 0)``, written as two fused passes (this runs
-    on N_cem x E x G values per imagined step)."""
-    return torch.expm1(F.threshold(pred, _FLOOR_SYMLOG, 0.0))
+    Equal to ``where(symexp(pred) > DEMAND_FLOOR, symexp(pred), 0)``, written as three cheap passes (this runs
+    on N_cem x E x G values per imagined step): exp(.) - 1 instead of expm1, which is several times slower on
+    CPU; its absolute error (about 1e-7 in normalized units) is far below DEMAND_FLOOR."""
+    return torch.exp(F.threshold(pred, _FLOOR_SYMLOG, 0.0)) - 1.0
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
