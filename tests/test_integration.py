@@ -106,6 +106,29 @@ def test_result_files_follow_the_contract(run):
         assert len(hashes) == 1, f"{ds}: methods saw different observation specs, days or scenarios"
 
 
+def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_verifies_them(run):
+    from dswm import controllers, runconfig
+    from prep.rawio import sha256_file
+
+    resolved = runconfig.resolve({**load_config(run / "config.yaml"), "profile": "smoke"})
+    learners = [m for m in METHODS if controllers.controller_class(m, resolved).learns]
+    assert learners
+    for ds in DATASETS:
+        for m in learners:
+            d = run / "results" / ds / m / "seed0"
+            man = json.loads((d / "train_manifest.json").read_text())
+            assert man["model"] == f"results/{ds}/{m}/seed0/model.pt"
+            assert man["model_sha256"] == sha256_file(d / "model.pt")
+            assert man["checkpoint"] == f"results/{ds}/{m}/seed0/train/checkpoint.pt"
+            assert man["checkpoint_sha256"] == sha256_file(d / "train" / "checkpoint.pt")
+            assert man["data_files_read"] == [
+                {"path": f"results/data/{ds}/{name}", "sha256": sha256_file(run / "results" / "data" / ds / name)}
+                for name in ("demand.parquet", "meta.json")]
+    report = json.loads((run / "results" / "audit" / "report.json").read_text())
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.checkpoints")
+    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in learners)
+
+
 def evaluate_runs(work):
     client = MlflowClient(tracking_uri="sqlite:///" + str(work / "results" / "mlflow.db"))
     exp = client.get_experiment_by_name(load_config(work / "config.yaml")["mlflow"]["experiment"])
