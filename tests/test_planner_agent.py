@@ -58,6 +58,17 @@ def test_methods_are_configurations_of_one_controller(resolved):
         "steps": resolved["dswm"]["budgets"]["smoke"]["steps"]}
 
 
+def test_a_method_override_of_the_training_section_reaches_its_settings(resolved):
+    import copy
+
+    cfg = copy.deepcopy(resolved)
+    cfg["dswm"]["methods"]["dswm_wo_unc"]["training"] = {"lr": 3.0e-4}
+    built = {m: controllers.build(m, config=cfg, seed=0) for m in ("dswm", "dswm_wo_unc")}
+    assert built["dswm_wo_unc"].settings.training.lr == 3.0e-4
+    assert built["dswm"].settings.training.lr == resolved["dswm"]["training"]["lr"] == 1.0e-3
+    assert built["dswm_wo_unc"].settings.training.batch == resolved["dswm"]["training"]["batch"]
+
+
 @pytest.mark.parametrize("method", ["dswm", "dswm_wo_dec"])
 def test_fit_save_load_act(resolved, core, tmp_path, method):
     ctl = controllers.build(method, config=resolved, seed=3)

@@ -91,7 +91,8 @@ def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMS
         raise ValueError(f"config.yaml: key 'dswm.planner.proposal' must be one of {PROPOSALS}, "
                          f"found {planner.get('proposal')!r}")
     return DSWMSettings(world_model=wm,
-                        training=_build(TrainConfig, dswm_cfg["training"], "dswm.training"),
+                        training=_build(TrainConfig, _merge(dswm_cfg["training"], over.get("training")),
+                                        "dswm.training"),
                         planner=_build(PlannerConfig, planner, "dswm.planner"),
                         transitions=int(budget["transitions"]), steps=int(budget["steps"]),
                         device=str(dswm_cfg["device"]))
