@@ -1,4 +1,5 @@
 """Controller interface and the method registry: built-in names, user classes by path, refusals."""
+import copy
 import sys
 import textwrap
 
@@ -12,6 +13,8 @@ from dswm.config import load_config
 from dswm.runconfig import resolve
 
 from conftest import ROOT
+
+LEARNERS = ["dswm", "dswm_wo_unc", "dswm_wo_dec"]
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +44,21 @@ def user_module(tmp_path, monkeypatch):
                 a = np.zeros((self.k, 3), dtype=np.float32)
                 a[:, 2] = self.bw
                 return a
+
+        class Fitter(Controller):
+            """Learns; declares no training identity, so it always trains alone."""
+            learns = True
+
+            def __init__(self, *, name, seed=0, device="cpu", steps=1, greed=0.0):
+                super().__init__(name=name, seed=seed, device=device)
+                self.steps, self.greed = steps, greed
+
+        class SharedFitter(Fitter):
+            """Opts in: only `steps` shapes its training (`greed` acts at decision time)."""
+
+            @classmethod
+            def training_identity(cls, *, name, config):
+                return str(config["methods"]["user"][name]["options"].get("steps", 1))
 
         class NotAController:
             pass
@@ -108,3 +126,47 @@ def test_base_controller_refuses_what_it_does_not_implement():
     with pytest.raises(NotImplementedError, match="not batched"):
         c.act_batch({"fleet": np.zeros((1, 16, 7))})
     assert controllers.Controller.budget_from_config(name="bare", config={}) == {}
+
+
+@pytest.mark.parametrize("profile", ["demo", "smoke", "paper"])
+def test_dswm_wo_unc_shares_the_training_of_dswm_and_dswm_wo_dec_trains_alone(resolved, profile):
+    cfg = {**resolved, "profile": profile}
+    assert resolved["methods"]["run"][:3] == LEARNERS
+    assert controllers.training_sources(cfg) == {"dswm": "dswm", "dswm_wo_unc": "dswm", "dswm_wo_dec": "dswm_wo_dec"}
+    ident = {m: controllers.controller_class(m, cfg).training_identity(name=m, config=cfg) for m in LEARNERS}
+    assert ident["dswm"] == ident["dswm_wo_unc"] != ident["dswm_wo_dec"]
+
+
+@pytest.mark.parametrize("section, override", [("world_model", {"deter": 64}), ("training", {"lr": 3.0e-4})])
+def test_a_method_that_overrides_what_shapes_training_trains_alone(resolved, section, override):
+    cfg = copy.deepcopy(resolved)
+    cfg["dswm"]["methods"]["dswm_wo_unc"][section] = override
+    assert controllers.training_sources(cfg) == {m: m for m in LEARNERS}
+
+
+def test_sharing_follows_the_settings_not_the_names(resolved):
+    cfg = copy.deepcopy(resolved)
+    cfg["dswm"]["methods"]["dswm_wo_unc"]["world_model"] = {"service_head": "mlp"}  # dswm_wo_dec's world model
+    assert controllers.training_sources(cfg) == {"dswm": "dswm", "dswm_wo_unc": "dswm_wo_unc",
+                                                 "dswm_wo_dec": "dswm_wo_unc"}
+
+
+def test_the_first_method_in_run_order_is_the_training_source(resolved):
+    cfg = copy.deepcopy(resolved)
+    cfg["methods"]["run"] = ["static", "dswm_wo_unc", "dswm_wo_dec", "dswm"]
+    assert controllers.training_sources(cfg) == {"dswm_wo_unc": "dswm_wo_unc", "dswm_wo_dec": "dswm_wo_dec",
+                                                 "dswm": "dswm_wo_unc"}
+    cfg["dswm"]["planner"]["lambda_u"] = 0.5  # planning settings never split a training
+    cfg["dswm"]["budgets"]["demo"]["planner"] = {"n_samples": 8}
+    assert controllers.training_sources(cfg)["dswm"] == "dswm_wo_unc"
+
+
+def test_user_learners_train_alone_unless_they_declare_a_training_identity(resolved, user_module):
+    user = {"f1": {"class": f"{user_module}:Fitter", "options": {"greed": 0.1}},
+            "f2": {"class": f"{user_module}:Fitter", "options": {"greed": 0.2}},
+            "s1": {"class": f"{user_module}:SharedFitter", "options": {"steps": 5, "greed": 0.1}},
+            "s2": {"class": f"{user_module}:SharedFitter", "options": {"steps": 5, "greed": 0.2}},
+            "s3": {"class": f"{user_module}:SharedFitter", "options": {"steps": 9}}}
+    cfg = {**resolved, "methods": {**resolved["methods"], "run": ["static", *user], "user": user}}
+    assert controllers.training_sources(cfg) == {"f1": "f1", "f2": "f2", "s1": "s1", "s2": "s1", "s3": "s3"}
+    assert controllers.Controller.training_identity(name="bare", config=cfg) is None

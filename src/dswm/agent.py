@@ -98,6 +98,12 @@ def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMS
                         device=str(dswm_cfg["device"]))
 
 
+def training_hash(s: DSWMSettings, budget: Mapping[str, Any]) -> str:
+    """Hash of everything that shapes training: world model, training section and budget (not the planner)."""
+    return stable_hash({"world_model": s.world_model, "training": dataclasses.asdict(s.training),
+                        "budget": dict(budget)})
+
+
 class BCDProposal:
     """The "bcd" proposal: the greedy baseline's block-coordinate descent (``dswm.baselines``), pointed at the
     anchored imagined next-slot map instead of the observed one, with the bandwidth logits searched too."""
@@ -142,11 +148,16 @@ class DSWMController(Controller):
         s = settings(config["dswm"], method=name, profile=config["profile"])
         return {"transitions": s.transitions, "steps": s.steps}
 
+    @classmethod
+    def training_identity(cls, *, name: str, config: Mapping[str, Any]) -> str:
+        """:func:`training_hash` of the method under the selected profile: ``dswm_wo_unc`` (a planner override
+        only) trains what ``dswm`` trains; ``dswm_wo_dec`` (a world-model override) does not."""
+        s = settings(config["dswm"], method=name, profile=config["profile"])
+        return training_hash(s, cls.budget_from_config(name=name, config=config))
+
     def settings_hash(self, budget: Mapping[str, Any]) -> str:
-        """Hash of everything that shapes training (a checkpoint resumes only under the same hash)."""
-        s = self.settings
-        return stable_hash({"world_model": s.world_model, "training": dataclasses.asdict(s.training),
-                            "budget": dict(budget)})
+        """:func:`training_hash` of this controller (a checkpoint resumes only under the same hash)."""
+        return training_hash(self.settings, budget)
 
     # ---- model construction ---------------------------------------------------------------------------
     def _build_model(self, grid: Grid, scenario) -> WorldModel:

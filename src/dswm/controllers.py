@@ -4,7 +4,8 @@ A controller sees one observation per slot and answers an action ``(K, 3)`` in [
 fraction of D_max and the bandwidth logit of each UAV. Before each evaluated day it receives a
 :class:`DayContext`; only a controller that declares ``clairvoyant = True`` (the oracle) gets the day's true
 demand in it. Learning methods declare ``learns = True`` and implement :meth:`Controller.fit` on a core built
-from the TRAINING days only, plus :meth:`save`/:meth:`load`.
+from the TRAINING days only, plus :meth:`save`/:meth:`load`; methods whose training is identical
+(:meth:`Controller.training_identity`) share one trained model (:func:`training_sources`).
 
 Methods are looked up by name: the built-in ones in :data:`BUILTIN`, a user's own through
 ``methods.user.<name>.class: "package.module:ClassName"`` in config.yaml.
@@ -88,6 +89,17 @@ class Controller:
     def budget_from_config(cls, *, name: str, config: Mapping[str, Any]) -> dict:
         """Training budget of this method under the selected profile (``config["profile"]``); {} if none."""
         return {}
+
+    @classmethod
+    def training_identity(cls, *, name: str, config: Mapping[str, Any]) -> str | None:
+        """Hash of everything that shapes the training of method ``name`` under ``config``, or None.
+
+        Methods of one class whose identities are equal train the same model on a (dataset, seed), so they share
+        one ``train`` job (:func:`training_sources`). A learning controller opts in by returning a hash of every
+        setting :meth:`fit` reads (budget included; the seed is the job's and is not part of it); None, the
+        default, means the method always trains alone.
+        """
+        return None
 
     def fit(self, train_core, *, budget: Mapping[str, Any], run_dir) -> dict:
         """Train on a core over the TRAINING days only; return the training manifest (docs/ARCHITECTURE.md).
@@ -214,3 +226,35 @@ def check_methods(config: Mapping[str, Any]) -> dict[str, type[Controller]]:
         {name: class} in run order.
     """
     return {name: controller_class(name, config) for name in config["methods"]["run"]}
+
+
+def training_sources(config: Mapping[str, Any]) -> dict[str, str]:
+    """The method whose trained model each learning method of ``methods.run`` evaluates.
+
+    A method's training source is the first method in ``methods.run`` order of the same class with an equal
+    :meth:`Controller.training_identity`: such methods differ only at decision time, so the ``train`` rule fits
+    the source alone and every method mapped to it loads the source's ``model.pt``. A method whose identity is
+    None is its own source.
+
+    Args:
+        config: the resolved config (runconfig.resolve).
+
+    Returns:
+        {learning method: training source} in run order; methods that do not learn are absent.
+
+    Raises:
+        ConfigError: a method's identity cannot be computed from config (the message names the method).
+    """
+    first: dict[tuple[str, str], str] = {}
+    out: dict[str, str] = {}
+    for name, cls in check_methods(config).items():
+        if not cls.learns:
+            continue
+        try:
+            identity = cls.training_identity(name=name, config=config)
+        except (KeyError, ValueError) as err:
+            raise ConfigError(f"config.yaml: method {name!r} of 'methods.run': its training settings cannot be "
+                              f"resolved ({err})") from err
+        key = None if identity is None else (f"{cls.__module__}:{cls.__qualname__}", str(identity))
+        out[name] = name if key is None else first.setdefault(key, name)
+    return out
