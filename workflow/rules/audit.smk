@@ -11,8 +11,7 @@ rule audit_report:
         results=result_files(),
         trajectories=[rules.evaluate.output.trajectory.format(dataset=d, method=m, seed=s)
                       for d, m, s in runconfig.jobs(RUN)],
-        manifests=[rules.train.output.manifest.format(dataset=d, method=m, seed=s)
-                   for d, m, s in runconfig.jobs(RUN) if learns(m)],
+        manifests=train_manifests(),
     output:
         json="results/audit/report.json",
         md="results/audit/report.md",

@@ -20,6 +20,7 @@ try:
     RUN = runconfig.resolve(config)
     runconfig.check_profile_datasets(RUN)
     METHOD_CLASSES = controllers.check_methods(RUN)
+    TRAIN_SOURCE = controllers.training_sources(RUN)
     runconfig.check_raw_files(RUN, Path.cwd())
 except ConfigError as err:
     raise WorkflowError(str(err)) from None
@@ -27,6 +28,10 @@ except ConfigError as err:
 PROFILE = RUN["profile"]
 DATASETS = list(RUN["run"]["datasets"])
 METHODS = list(RUN["methods"]["run"])
+TRAINED = [m for m in METHODS if TRAIN_SOURCE.get(m) == m]
+"""The learning methods the `train` rule fits; every other learning method evaluates its source's model."""
+TRAINED_PATTERN = "|".join(TRAINED) or "(?!)"
+"""The `train` rule's method constraint: a model.pt of a method that shares a training cannot be requested."""
 
 
 wildcard_constraints:
@@ -41,13 +46,24 @@ def learns(method):
 
 
 def trained_model(wildcards):
-    """The trained model and manifest an evaluation needs (none for methods that do not learn)."""
+    """The trained model and manifest an evaluation needs: its training source's (none for methods that do not
+    learn). A method whose training is identical to an earlier one's evaluates that method's model."""
     if not learns(wildcards.method):
         return {}
+    source = {**dict(wildcards.items()), "method": TRAIN_SOURCE[wildcards.method]}
     return {
-        "model": rules.train.output.model.format(**dict(wildcards.items())),
-        "manifest": rules.train.output.manifest.format(**dict(wildcards.items())),
+        "model": rules.train.output.model.format(**source),
+        "manifest": rules.train.output.manifest.format(**source),
     }
+
+
+def train_manifests():
+    """The training manifest of every train job of the selected profile (one per training source and seed)."""
+    return [
+        rules.train.output.manifest.format(dataset=d, method=m, seed=s)
+        for d, m, s in runconfig.jobs(RUN)
+        if m in TRAINED
+    ]
 
 
 def result_files():

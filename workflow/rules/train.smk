@@ -1,4 +1,5 @@
-# Training of learning methods on the TRAINING days of a dataset (never its test days).
+# Training of learning methods on the TRAINING days of a dataset (never its test days). Only training sources
+# are trained (common.smk TRAINED): a method whose training is identical to an earlier one's evaluates its model.
 
 
 rule train:
@@ -16,6 +17,8 @@ rule train:
         "logs/train/{dataset}/{method}/seed{seed}.log",
     benchmark:
         "results/benchmarks/train/{dataset}/{method}/seed{seed}.tsv"
+    wildcard_constraints:
+        method=TRAINED_PATTERN,
     threads: 1
     script:
         "../scripts/train.py"
