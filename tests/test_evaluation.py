@@ -115,3 +115,47 @@ def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path
     assert not target.exists() and list(target.parent.iterdir()) == []
     write_json(tmp_path / "m.json", {"b": 1, "a": [2]})
     assert (tmp_path / "m.json").read_text() == '{\n  "a": [\n    2\n  ],\n  "b": 1\n}\n'
+
+
+def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkeypatch):
+    import json
+
+    from dswm.evaluation import read_model_record, write_days
+    from dswm.jobs import model_record
+    from prep.rawio import sha256_file
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "results/milan/dswm/seed0"
+    run.mkdir(parents=True)
+    (run / "model.pt").write_bytes(b"weights of dswm")
+    (run / "train_manifest.json").write_text(json.dumps({"model_sha256": sha256_file(run / "model.pt")}))
+    rec = model_record(method="dswm_wo_unc", source="dswm", model=run / "model.pt",
+                       manifest=run / "train_manifest.json")
+    assert rec == {"method": "dswm_wo_unc", "train_source": "dswm", "model": "results/milan/dswm/seed0/model.pt",
+                   "model_sha256": sha256_file(run / "model.pt"),
+                   "train_manifest": "results/milan/dswm/seed0/train_manifest.json"}
+    days = pl.DataFrame({"day": [1, 2], "sr_mean": [0.5, 0.6]})
+    write_days(days, tmp_path / "days.parquet", rec)
+    assert read_model_record(tmp_path / "days.parquet") == rec
+    assert pl.read_parquet(tmp_path / "days.parquet").equals(days)  # the table itself is unchanged
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["days.parquet", "results"]  # no temp file left
+    static = model_record(method="static")
+    write_days(days, tmp_path / "static.parquet", static)
+    assert read_model_record(tmp_path / "static.parquet")["model"] is None
+    days.write_parquet(tmp_path / "bare.parquet")
+    assert read_model_record(tmp_path / "bare.parquet") is None
+
+
+def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path):
+    import json
+
+    from dswm.jobs import model_record
+
+    (tmp_path / "model.pt").write_bytes(b"another model")
+    (tmp_path / "train_manifest.json").write_text(json.dumps({"model_sha256": "ab" * 32}))
+    with pytest.raises(ValueError) as err:
+        model_record(method="dswm_wo_unc", source="dswm", model=tmp_path / "model.pt",
+                     manifest=tmp_path / "train_manifest.json")
+    msg = str(err.value)
+    assert f"{tmp_path / 'model.pt'}: SHA-256 is " in msg and f"expected {'ab' * 32}" in msg
+    assert "train_manifest.json" in msg and "re-run the train job of dswm" in msg

@@ -4,13 +4,16 @@ Every method runs the same days through the same ``FleetCore`` from the same ini
 K-means of the mean TRAINING map; batteries drawn from (dataset, day) alone). A day's score is the mean of
 its 144 served-ratio values (SR_0 of the initial deployment, then one per decision). The evaluated days of a
 job are stepped as one batch when the controller is batched. The per-day table this module returns is the
-source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results").
+source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results"); :func:`write_days`
+stores it with the record of the model the evaluation loaded in the file's metadata.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -18,6 +21,7 @@ import polars as pl
 import torch
 from tqdm import tqdm
 
+from dswm.atomic import atomic_path
 from dswm.config import Scenario, stable_hash
 from dswm.controllers import Controller, DayContext
 from dswm.core import FleetCore, Grid, initial_positions, obs_spec_hash
@@ -25,6 +29,11 @@ from dswm.core import FleetCore, Grid, initial_positions, obs_spec_hash
 DAY_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
                "dataset", "profile", "data_source"]
+
+MODEL_RECORD_KEY = "dswm.evaluated_model"
+"""days.parquet metadata key of the model record: JSON {method, train_source, model, model_sha256,
+train_manifest}; the last four are null for a method that does not learn."""
+MODEL_RECORD_FIELDS = ("method", "train_source", "model", "model_sha256", "train_manifest")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -161,3 +170,36 @@ def split_summary(days: pl.DataFrame) -> dict[str, float]:
         for col in ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot"):
             out[f"{split}/{col}"] = float(part[col].mean())
     return out
+
+
+def write_days(days: pl.DataFrame, path: str | Path, model_record: Mapping[str, Any]) -> None:
+    """Write days.parquet atomically, with ``model_record`` as JSON under :data:`MODEL_RECORD_KEY` in its metadata.
+
+    Args:
+        days: the per-day table (``EvalResult.days``).
+        path: the result file.
+        model_record: {field: value} for every field of :data:`MODEL_RECORD_FIELDS`.
+    """
+    missing = [k for k in MODEL_RECORD_FIELDS if k not in model_record]
+    if missing:
+        raise ValueError(f"{path}: model record lacks {missing}; expected the fields {list(MODEL_RECORD_FIELDS)}")
+    with atomic_path(path) as tmp:
+        days.write_parquet(tmp, metadata={MODEL_RECORD_KEY: json.dumps(dict(model_record), sort_keys=True)})
+
+
+def read_model_record(path: str | Path) -> dict | None:
+    """The model record :func:`write_days` stored in days.parquet, or None for a file written without one.
+
+    Raises:
+        ValueError: the record is not a JSON object.
+    """
+    raw = pl.read_parquet_metadata(path).get(MODEL_RECORD_KEY)
+    if raw is None:
+        return None
+    try:
+        record = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: metadata {MODEL_RECORD_KEY} is not JSON ({exc})") from exc
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: metadata {MODEL_RECORD_KEY} = {raw!r}; expected a JSON object")
+    return record

@@ -2,7 +2,8 @@
 
 * :func:`train_job`     fit a learning method on the TRAINING days; model file + train_manifest.json (with the
                         SHA-256 of the checkpoint, the model file and every prepared file it read).
-* :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet + trajectory.npz.
+* :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet (with the record of the model it
+                        loaded: path, SHA-256, training source) + trajectory.npz.
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
 
@@ -11,6 +12,7 @@ MLflow with exactly one run each.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -18,7 +20,7 @@ import numpy as np
 import torch
 
 from dswm import calibration, controllers, evaluation, runconfig, tables, tracking
-from dswm.atomic import atomic_path, save_npz, write_json
+from dswm.atomic import save_npz, write_json
 from dswm.config import Scenario
 from dswm.core import FleetCore, Grid
 from prep.rawio import sha256_file
@@ -116,26 +118,61 @@ def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str
     return manifest
 
 
+def model_record(*, method: str, source: str | None = None, model: str | Path | None = None,
+                 manifest: str | Path | None = None) -> dict:
+    """What an evaluation records about the model it loads (``evaluation.MODEL_RECORD_FIELDS``).
+
+    Args:
+        method: the evaluated method.
+        source: its training source (controllers.training_sources); None for a method that does not learn.
+        model: the source's model file, hashed here, before it is loaded.
+        manifest: the source's train_manifest.json; its ``model_sha256`` must be the model file's SHA-256.
+
+    Raises:
+        ValueError: the model file does not hash to the manifest's ``model_sha256``.
+    """
+    if source is None:
+        return {"method": method, "train_source": None, "model": None, "model_sha256": None, "train_manifest": None}
+    found = sha256_file(Path(model))
+    with open(manifest, encoding="utf-8") as fh:
+        want = json.load(fh).get("model_sha256")
+    if found != want:
+        raise ValueError(f"{model}: SHA-256 is {found}, expected {want} (model_sha256 of {manifest}) — not the model "
+                         f"{source} trained for {method}; re-run the train job of {source}")
+    return {"method": method, "train_source": source, "model": _workdir_relative(model), "model_sha256": found,
+            "train_manifest": _workdir_relative(manifest)}
+
+
 def evaluate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str, method: str, seed: int,
                  days_out: str | Path, trajectory_out: str | Path, repo: str | Path,
-                 model: str | Path | None = None) -> evaluation.EvalResult:
-    """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz; track it in MLflow."""
+                 model: str | Path | None = None, manifest: str | Path | None = None) -> evaluation.EvalResult:
+    """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz; track it in MLflow.
+
+    A learning method loads ``model``, the model of its training source (``controllers.training_sources``), and
+    ``manifest``, that source's training manifest. days.parquet records the model (:func:`model_record`) in its
+    metadata; the MLflow run is tagged ``train_source``, ``model_path`` and ``model_sha256``.
+    """
     resolved, scenario = _setup(config)
     tensor = _load_tensor(tensor_dir)
     ev = resolved["evaluation"]
     with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="evaluate", dataset=dataset,
                           method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
         ctrl = controllers.build(method, config=resolved, seed=seed)
+        record = model_record(method=method)
         if ctrl.learns:
-            if model is None:
-                raise ValueError(f"{method}: a learning method needs its trained model file")
+            if model is None or manifest is None:
+                raise ValueError(f"{method}: a learning method needs its training source's model file and "
+                                 f"train_manifest.json (found model={model!r}, manifest={manifest!r})")
+            source = controllers.training_sources(resolved).get(method, method)
+            record = model_record(method=method, source=source, model=model, manifest=manifest)
+            run.set_tags({"train_source": source, "model_path": record["model"],
+                          "model_sha256": record["model_sha256"]})
             ctrl.load(model)
         result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
                                      limits=resolved["run"]["eval_days"], profile=resolved["profile"],
                                      device=ev["device"], batch_days=ev["batch_days"],
                                      progress_interval_s=ev["progress_mininterval_s"])
-        with atomic_path(days_out) as tmp:
-            result.days.write_parquet(tmp)
+        evaluation.write_days(result.days, days_out, record)
         save_npz(trajectory_out, **result.trajectories)
         for row in result.days.iter_rows(named=True):
             run.log_metrics({f"day/{m}": row[m] for m in DAY_METRICS}, step=row["day"])

@@ -10,4 +10,5 @@ w, inp = snakemake.wildcards, snakemake.input  # noqa: F821
 evaluate_job(config=snakemake.config, tensor_dir=Path(inp.tensor).parent, dataset=w.dataset,  # noqa: F821
              method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
              trajectory_out=snakemake.output.trajectory, model=inp.get("model"),  # noqa: F821
+             manifest=inp.get("manifest"),
              repo=snakemake.scriptdir + "/../..")  # noqa: F821
