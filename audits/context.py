@@ -103,6 +103,17 @@ class AuditContext:
         return bool(getattr(controller_class(method, self.resolved), "learns", False))
 
     @cached_property
+    def training_sources(self) -> dict[str, str]:
+        """{learning method: the method whose trained model it evaluates}, from config (dswm.controllers)."""
+        from dswm.controllers import training_sources
+
+        return training_sources(self.resolved)
+
+    def training_source(self, method: str) -> str:
+        """The method whose train job fitted the model `method` evaluates (`method` itself unless it shares)."""
+        return self.training_sources.get(method, method)
+
+    @cached_property
     def percentile(self) -> float:
         return float(self.config["datasets"]["common"]["norm_percentile"])
 

@@ -3,12 +3,15 @@
 * `check_hashes`: every result file of every method carries one observation-spec hash, one eval-days hash
   and one scenario hash, each equal to the value recomputed from config.yaml and meta.json.
 * `check_result_days`: every result file holds exactly the configured ID and OOD days of its dataset.
-* `check_training_days`: every learning method's training manifest records the day of its pre-collected or
-  replayed data, and every such day is a training day.
-* `check_checkpoints`: the checkpoint and the model file hash to the SHA-256 the training manifest recorded when
-  training ended, and every prepared file training read still hashes to the value recorded when it was read
-  (so no checkpoint, model or training input changed once evaluation began reading test-day data); file times
-  agree; training declares that it read no test data.
+* `check_training_days`: every learning method's training manifest (its training source's, for a method whose
+  training is identical to an earlier one's) records the day of its pre-collected or replayed data, and every
+  such day is a training day.
+* `check_checkpoints`: the checkpoint and the model file of every train job hash to the SHA-256 the training
+  manifest recorded when training ended, and every prepared file training read still hashes to the value
+  recorded when it was read (so no checkpoint, model or training input changed once evaluation began reading
+  test-day data); file times agree; training declares that it read no test data.
+* `check_evaluated_models`: every learning method's result file records the model it evaluated, and that model
+  is its training source's model.pt, hashing to the model_sha256 of the source's training manifest.
 """
 from __future__ import annotations
 
@@ -131,11 +134,14 @@ def check_result_days(ctx: AuditContext) -> Check:
 
 
 def _manifest(ctx: AuditContext, ds: str, method: str, seed: int) -> tuple[Path, dict]:
+    """The training manifest of the train job of `method` (a training source) on (ds, seed)."""
     path = ctx.run_dir(ds, method, seed) / "train_manifest.json"
     try:
         return path, ctx.ledger.read_json(path)
     except FileNotFoundError as exc:
-        raise AuditInputError(f"{ctx.rel(path)}: training manifest missing for learning method {method}") from exc
+        users = [m for m in ctx.methods if m != method and ctx.learns(m) and ctx.training_source(m) == method]
+        also = f" (whose model {', '.join(users)} also evaluate)" if users else ""
+        raise AuditInputError(f"{ctx.rel(path)}: training manifest missing for learning method {method}{also}") from exc
     except ValueError as exc:
         raise AuditInputError(f"{ctx.rel(path)}: not valid JSON ({exc})") from exc
 
@@ -146,15 +152,25 @@ def learning_jobs(ctx: AuditContext) -> list[tuple[str, str, int]]:
     return [(ds, m, s) for ds in ctx.datasets for m in learners for s in ctx.seeds(ds)]
 
 
+def training_jobs(ctx: AuditContext) -> dict[tuple[str, str, int], list[str]]:
+    """{(dataset, training source, seed): the learning methods that evaluate its model} of every train job."""
+    out: dict[tuple[str, str, int], list[str]] = {}
+    for ds, method, seed in learning_jobs(ctx):
+        out.setdefault((ds, ctx.training_source(method), seed), []).append(method)
+    return out
+
+
 def check_training_days(ctx: AuditContext) -> Check:
     """Every learning method records the day of its training data, and all of them are training days."""
     chk = Check(id="protocol.training_days", family="protocol",
-                claim="Every learning method's training manifest records the tensor day of every pre-collected or "
-                      "replayed transition, and every one of them is a training day.")
+                claim="Every learning method's training manifest (that of its training source, for a method whose "
+                      "training is identical to an earlier one's) records the tensor day of every pre-collected "
+                      "or replayed transition, and every one of them is a training day.")
     learners = learning_jobs(ctx)
-    chk.evidence["learning_jobs"] = ([f"{d}/{m}/seed{s}" for d, m, s in learners] or
+    chk.evidence["learning_jobs"] = ({f"{d}/{m}/seed{s}": ctx.rel(ctx.run_dir(d, ctx.training_source(m), s) /
+                                                                  "train_manifest.json") for d, m, s in learners} or
                                      "none: no method of methods.run learns, nothing to verify")
-    for ds, method, seed in learners:
+    for (ds, method, seed), users in training_jobs(ctx).items():
         try:
             path, man = _manifest(ctx, ds, method, seed)
             labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
@@ -185,7 +201,7 @@ def check_training_days(ctx: AuditContext) -> Check:
                      f"expected)")
         chk.evidence[f"{ds}/{method}/seed{seed}"] = {"records": len(days), "distinct_days": len(set(days)),
                                                      "training_days_covered": f"{len(set(days) & train)}/{len(train)}",
-                                                     "n_transitions": n}
+                                                     "n_transitions": n, "evaluated_by": users}
     return chk
 
 
@@ -283,11 +299,12 @@ def check_checkpoints(ctx: AuditContext) -> Check:
     chk = Check(id="protocol.checkpoints", family="protocol",
                 tolerance=f"contents: SHA-256 equal; file times within {CLOCK_SLACK_S:g} s "
                           f"(checkpoint_written_at is recorded to the second)",
-                claim="Every learning run's checkpoint and model file hash to the SHA-256 its training manifest "
+                claim="Every train job's checkpoint and model file hash to the SHA-256 its training manifest "
                       "recorded when training ended, and the prepared tensor and meta.json it read hash to the "
                       "values recorded when it read them, so none changed once evaluation began reading test-day "
-                      "data; no checkpoint file is newer than the manifest; training declares it read no test data.")
-    for ds, method, seed in learning_jobs(ctx):
+                      "data; no checkpoint file is newer than the manifest; no result file that evaluates the "
+                      "model is older than it; training declares it read no test data.")
+    for (ds, method, seed), users in training_jobs(ctx).items():
         try:
             mpath, man = _manifest(ctx, ds, method, seed)
         except AuditInputError as exc:
@@ -310,11 +327,79 @@ def check_checkpoints(ctx: AuditContext) -> Check:
             if f.is_file() and f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
                 chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
                          f"at {_iso(closed)} — a checkpoint written after reading test-day data")
-        result = result_path(ctx, ds, method, seed)
-        if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
-            chk.fail(f"{ctx.rel(result)}: written before its training manifest closed — the evaluation did not "
-                     f"use the final checkpoint")
-        chk.evidence[f"{ds}/{method}/seed{seed}"] = ev
+        for user in users:
+            result = result_path(ctx, ds, user, seed)
+            if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
+                chk.fail(f"{ctx.rel(result)}: written before its training manifest {where} closed — the "
+                         f"evaluation did not use the final checkpoint")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {**ev, "evaluated_by": users}
+    return chk
+
+
+def check_evaluated_models(ctx: AuditContext) -> Check:
+    """Every learning evaluation loaded its training source's model, the one that source's manifest records."""
+    from dswm.evaluation import MODEL_RECORD_KEY, read_model_record
+
+    chk = Check(id="protocol.evaluated_models", family="protocol",
+                claim="Every learning method's result file records the model it evaluated: the model.pt of its "
+                      "training source (the first method of methods.run whose training is identical; the method "
+                      "itself otherwise) and that source's training manifest; the SHA-256 taken when the "
+                      "evaluation loaded it and the SHA-256 of the file now both equal the manifest's model_sha256.")
+    for ds, method, seed in learning_jobs(ctx):
+        source = ctx.training_source(method)
+        days = result_path(ctx, ds, method, seed)
+        where = ctx.rel(days)
+        want_model = ctx.run_dir(ds, source, seed) / MODEL_FILE
+        want_manifest = ctx.run_dir(ds, source, seed) / "train_manifest.json"
+        try:
+            rec = read_model_record(ctx.ledger.track(days))
+        except FileNotFoundError:
+            chk.fail(f"{where}: result file missing (run the evaluate rule)")
+            continue
+        except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
+            chk.fail(f"{where}: unreadable ({exc})")
+            continue
+        if rec is None:
+            chk.fail(f"{where}: no {MODEL_RECORD_KEY} record in its metadata; expected the model file the "
+                     f"evaluation loaded, its SHA-256 and its training source — the result predates model "
+                     f"recording; re-run the evaluate job of {ds}/{method}/seed{seed}")
+            continue
+        if rec.get("train_source") != source:
+            chk.fail(f"{where}: train_source = {rec.get('train_source')!r}, expected {source!r} (the training "
+                     f"source config.yaml gives {method})")
+        claimed = rec.get("train_manifest")
+        if not claimed or _under_root(ctx, claimed).resolve() != want_manifest.resolve():
+            chk.fail(f"{where}: train_manifest = {claimed!r}, expected {ctx.rel(want_manifest)}")
+        if not rec.get("model"):
+            chk.fail(f"{where}: model = {rec.get('model')!r}, expected {ctx.rel(want_model)}, the model {source} "
+                     f"trained")
+            continue
+        mpath = _under_root(ctx, rec["model"])
+        if mpath.resolve() != want_model.resolve():
+            chk.fail(f"{where}: model = {rec['model']!r}, expected {ctx.rel(want_model)}, the model {source} trained")
+        try:
+            _, man = _manifest(ctx, ds, source, seed)
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        expected = man.get("model_sha256")
+        if not expected:
+            chk.fail(f"{ctx.rel(want_manifest)}: no model_sha256 recorded — the manifest predates content hashing; "
+                     f"re-run the train job of {ds}/{source}/seed{seed}")
+            continue
+        loaded = rec.get("model_sha256")
+        if loaded != expected:
+            chk.fail(f"{where}: the evaluation loaded {ctx.rel(mpath)} with SHA-256 {loaded}, expected {expected} "
+                     f"(model_sha256 of {ctx.rel(want_manifest)}) — {method} was evaluated with a model {source} "
+                     f"did not train")
+        found = ctx.ledger.sha256(mpath) if mpath.is_file() else None
+        if found is None:
+            chk.fail(f"{ctx.rel(mpath)}: missing; {where} records it as the model it evaluated")
+        elif found != expected:
+            chk.fail(f"{ctx.rel(mpath)}: SHA-256 is {found}, expected {expected} (model_sha256 of "
+                     f"{ctx.rel(want_manifest)}, which {where} names) — not the model {source} trained")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {"train_source": source, "model": ctx.rel(mpath),
+                                                     "expected": expected, "loaded": loaded, "found": found}
     return chk
 
 

@@ -34,6 +34,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     protocol.check_result_days,
     protocol.check_training_days,
     protocol.check_checkpoints,
+    protocol.check_evaluated_models,
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 

@@ -2,8 +2,9 @@
 
 `build_clean_tree(root)` writes, under `root`, what the pipeline would have produced on two tiny datasets:
 raw files in the published Milan and YJMob formats (results/raw/...), the prepared tensors made by the real
-`prep` functions (results/data/...), per-day result files of static, greedy and one learning method with a
-training manifest and checkpoint, trajectories and the calibration record. Test days carry more demand than
+`prep` functions (results/data/...), per-day result files of static, greedy and two learning methods that share
+one training (dswm trains; dswm_wo_unc evaluates its model), the training manifest and checkpoint, trajectories
+and the calibration record. Test days carry more demand than
 training days, so every training statistic differs from its all-days and test-segment values.
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ import polars as pl
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-METHODS = ["static", "greedy", "dswm"]
+METHODS = ["static", "greedy", "dswm", "dswm_wo_unc"]
 T0 = 1_700_000_000.0
 """File times of the fixture (seconds since the epoch): checkpoint, then manifest, then results."""
 
@@ -138,7 +139,7 @@ def _hashes(cfg: dict, root: Path, ds: str):
 def evaluate_static(cfg: dict, root: Path, ds: str, seed: int) -> Path:
     """Evaluates Static with the pipeline's own evaluation (dswm.evaluation) and writes its result files."""
     from dswm.baselines import StaticController
-    from dswm.evaluation import evaluate
+    from dswm.evaluation import evaluate, write_days
 
     scenario, t, _, _, _ = _hashes(cfg, root, ds)
     res = evaluate(tensor=t, controller=StaticController(name="static", seed=seed), scenario=scenario, seed=seed,
@@ -146,18 +147,36 @@ def evaluate_static(cfg: dict, root: Path, ds: str, seed: int) -> Path:
                    progress_interval_s=60.0)
     run = root / "results" / ds / "static" / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
-    res.days.write_parquet(run / "days.parquet")
+    write_days(res.days, run / "days.parquet", model_record(cfg, root, ds, "static", seed))
     np.savez(run / "trajectory.npz", **res.trajectories)
     for f in ("days.parquet", "trajectory.npz"):
         os.utime(run / f, (T0 + 20, T0 + 20))
     return run / "days.parquet"
 
 
+def model_record(cfg: dict, root: Path, ds: str, method: str, seed: int) -> dict:
+    """The model record a clean evaluation of `method` stores in days.parquet (as `dswm.jobs.model_record`): for a
+    learning method, its training source's model.pt (already written) with its SHA-256 and manifest."""
+    from dswm.controllers import training_sources
+    from dswm.runconfig import resolve
+    from prep.rawio import sha256_file
+
+    source = training_sources(resolve(cfg)).get(method)
+    if source is None:
+        return {"method": method, "train_source": None, "model": None, "model_sha256": None, "train_manifest": None}
+    run = Path("results") / ds / source / f"seed{seed}"
+    return {"method": method, "train_source": source, "model": (run / "model.pt").as_posix(),
+            "model_sha256": sha256_file(root / run / "model.pt"),
+            "train_manifest": (run / "train_manifest.json").as_posix()}
+
+
 def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
-                  days_override: dict[str, list[int]] | None = None, init_pos: np.ndarray | None = None) -> Path:
-    """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes a clean
-    evaluation records (or the planted `obs_hash`, evaluated `days_override`, initial positions `init_pos`)."""
-    from dswm.evaluation import DAY_COLUMNS, initial_deployment
+                  days_override: dict[str, list[int]] | None = None, init_pos: np.ndarray | None = None,
+                  record: dict | None = None) -> Path:
+    """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes and model
+    record a clean evaluation records (or the planted `obs_hash`, evaluated `days_override`, initial positions
+    `init_pos`, model `record`)."""
+    from dswm.evaluation import DAY_COLUMNS, initial_deployment, write_days
 
     scenario, t, grid, ev, hashes = _hashes(cfg, root, ds)
     if obs_hash is not None:
@@ -170,7 +189,8 @@ def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs
              "data_source": "demo"} for split, idx in days.items() for d in idx]
     run = root / "results" / ds / method / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
-    pl.DataFrame(rows).select(DAY_COLUMNS).write_parquet(run / "days.parquet")
+    write_days(pl.DataFrame(rows).select(DAY_COLUMNS), run / "days.parquet",
+               record if record is not None else model_record(cfg, root, ds, method, seed))
     init = initial_deployment(t, grid, scenario) if init_pos is None else init_pos
     traj = {}
     for split in ("id", "ood"):
@@ -245,12 +265,12 @@ def build_clean_tree(root: Path | str) -> dict:
     prepare(cfg, root)
     for ds in cfg["profiles"]["smoke"]["datasets"]:
         for method in METHODS:
+            if method == "dswm":  # the training source; dswm_wo_unc evaluates its model
+                write_training(cfg, root, ds, method, 0)
             if method == "static":
                 evaluate_static(cfg, root, ds, 0)
             else:
                 write_results(cfg, root, ds, method, 0)
-            if method == "dswm":
-                write_training(cfg, root, ds, method, 0)
     calibrate(cfg, root)
     (root / "config.json").write_text(json.dumps(cfg))
     return cfg

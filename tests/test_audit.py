@@ -22,7 +22,7 @@ import pytest
 from audits import crop, derived, protocol, splits, statistics
 from audits.__main__ import main
 from audits.context import AuditContext
-from audits.testing import T0, build_clean_tree, prepare, write_results, write_training
+from audits.testing import T0, build_clean_tree, model_record, prepare, write_results, write_training
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -164,10 +164,94 @@ def test_replay_buffer_holds_a_test_day(tree):
     root, cfg = tree
     write_training(cfg, root, "milan", "dswm", 0, days=[0, 1, 2, 3, 5, 1])  # index 5 = 2013-12-22, a test day
     chk = run(root, cfg, protocol.check_training_days)
-    assert len(chk.failures) == 1
+    assert len(chk.failures) == 1  # once for the train job, not once per method that evaluates its model
     msg = chk.failures[0]
     assert "results/milan/dswm/seed0/train_manifest.json" in msg and "holds a test day" in msg
     assert "2013-12-22" in msg
+    assert chk.evidence["learning_jobs"]["milan/dswm_wo_unc/seed0"] == "results/milan/dswm/seed0/train_manifest.json"
+
+
+def test_a_method_that_shares_a_training_is_verified_through_its_source_manifest(clean):
+    root, cfg = clean
+    assert not (root / "results/milan/dswm_wo_unc/seed0/train_manifest.json").exists()
+    days = run(root, cfg, protocol.check_training_days)
+    assert days.passed, days.failures
+    assert days.evidence["learning_jobs"] == {f"{ds}/{m}/seed0": f"results/{ds}/dswm/seed0/train_manifest.json"
+                                              for ds in ("milan", "yjmob") for m in ("dswm", "dswm_wo_unc")}
+    assert days.evidence["yjmob/dswm/seed0"]["evaluated_by"] == ["dswm", "dswm_wo_unc"]
+    ckpt = run(root, cfg, protocol.check_checkpoints)
+    assert ckpt.passed and sorted(ckpt.evidence) == ["milan/dswm/seed0", "yjmob/dswm/seed0"]
+    models = run(root, cfg, protocol.check_evaluated_models)
+    assert models.passed, models.failures
+    model = root / "results/milan/dswm/seed0/model.pt"
+    assert models.evidence["milan/dswm_wo_unc/seed0"] == {
+        "train_source": "dswm", "model": "results/milan/dswm/seed0/model.pt",
+        "expected": sha(model), "loaded": sha(model), "found": sha(model)}
+
+
+def test_evaluation_that_loaded_a_model_its_source_did_not_train(tree):
+    root, cfg = tree
+    stray = root / "results/milan/dswm_wo_unc/seed0/model.pt"  # a model trained for dswm_wo_unc after all
+    stray.write_bytes(b"fixture model dswm_wo_unc")
+    rec = {"method": "dswm_wo_unc", "train_source": "dswm", "model": "results/milan/dswm_wo_unc/seed0/model.pt",
+           "model_sha256": sha(stray), "train_manifest": "results/milan/dswm/seed0/train_manifest.json"}
+    write_results(cfg, root, "milan", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, cfg, protocol.check_evaluated_models)
+    want = sha(root / "results/milan/dswm/seed0/model.pt")
+    where = "results/milan/dswm_wo_unc/seed0/days.parquet"
+    assert chk.failures == [
+        f"{where}: model = 'results/milan/dswm_wo_unc/seed0/model.pt', expected results/milan/dswm/seed0/model.pt, "
+        f"the model dswm trained",
+        f"{where}: the evaluation loaded results/milan/dswm_wo_unc/seed0/model.pt with SHA-256 {sha(stray)}, "
+        f"expected {want} (model_sha256 of results/milan/dswm/seed0/train_manifest.json) — dswm_wo_unc was "
+        f"evaluated with a model dswm did not train",
+        f"results/milan/dswm_wo_unc/seed0/model.pt: SHA-256 is {sha(stray)}, expected {want} (model_sha256 of "
+        f"results/milan/dswm/seed0/train_manifest.json, which {where} names) — not the model dswm trained"]
+
+
+def test_evaluation_record_naming_the_source_model_with_another_hash(tree):
+    root, cfg = tree
+    other = hashlib.sha256(b"a model loaded before dswm's training ended").hexdigest()
+    rec = {"method": "dswm_wo_unc", "train_source": "dswm", "model": "results/yjmob/dswm/seed0/model.pt",
+           "model_sha256": other, "train_manifest": "results/yjmob/dswm/seed0/train_manifest.json"}
+    write_results(cfg, root, "yjmob", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, cfg, protocol.check_evaluated_models)
+    assert len(chk.failures) == 1
+    msg = chk.failures[0]
+    assert msg.startswith("results/yjmob/dswm_wo_unc/seed0/days.parquet: the evaluation loaded "
+                          "results/yjmob/dswm/seed0/model.pt")
+    assert f"SHA-256 {other}" in msg and f"expected {sha(root / 'results/yjmob/dswm/seed0/model.pt')}" in msg
+
+
+def test_evaluation_that_claims_another_training_source(tree):
+    root, cfg = tree
+    rec = dict(model_record(cfg, root, "milan", "dswm_wo_unc", 0), train_source="dswm_wo_unc")
+    write_results(cfg, root, "milan", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, cfg, protocol.check_evaluated_models)
+    assert chk.failures == ["results/milan/dswm_wo_unc/seed0/days.parquet: train_source = 'dswm_wo_unc', expected "
+                            "'dswm' (the training source config.yaml gives dswm_wo_unc)"]
+    assert rec["model"] == "results/milan/dswm/seed0/model.pt"
+
+
+def test_learning_result_without_a_model_record(tree):
+    root, cfg = tree
+    path = root / "results/yjmob/dswm/seed0/days.parquet"
+    pl.read_parquet(path).write_parquet(path)  # what the evaluate job wrote before it recorded the model
+    os.utime(path, (T0 + 20, T0 + 20))
+    chk = run(root, cfg, protocol.check_evaluated_models)
+    assert len(chk.failures) == 1
+    assert chk.failures[0].startswith("results/yjmob/dswm/seed0/days.parquet: no dswm.evaluated_model record")
+    assert "re-run the evaluate job of yjmob/dswm/seed0" in chk.failures[0]
+
+
+def test_sharing_method_evaluated_before_its_source_training_ended(tree):
+    root, cfg = tree
+    result = root / "results/milan/dswm_wo_unc/seed0/days.parquet"
+    os.utime(result, (T0 + 2, T0 + 2))  # before dswm's manifest closed (T0 + 10)
+    chk = run(root, cfg, protocol.check_checkpoints)
+    assert chk.failures == ["results/milan/dswm_wo_unc/seed0/days.parquet: written before its training manifest "
+                            "results/milan/dswm/seed0/train_manifest.json closed — the evaluation did not use the "
+                            "final checkpoint"]
 
 
 def test_checkpoint_written_after_training_ended(tree):
