@@ -1,8 +1,9 @@
 """The whole DAG on the `smoke` profile in a temporary copy of the repository, then its outputs checked.
 
 One run (module fixture): `snakemake tables calibrate --config profile=smoke` builds the demo raw data of the
-three datasets, prepares them, creates the MLflow store, evaluates static/greedy/oracle on one ID and one OOD
-day per dataset, calibrates u on the Milan training days, and writes both tables.
+three datasets, prepares them, creates the MLflow store, trains dswm and dswm_wo_dec (dswm_wo_unc shares
+dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits the tree,
+calibrates u on the Milan training days, and writes both tables.
 """
 import csv
 import json
@@ -106,15 +107,21 @@ def test_result_files_follow_the_contract(run):
         assert len(hashes) == 1, f"{ds}: methods saw different observation specs, days or scenarios"
 
 
-def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_verifies_them(run):
+def training_sources(work):
     from dswm import controllers, runconfig
+
+    return controllers.training_sources(runconfig.resolve({**load_config(work / "config.yaml"), "profile": "smoke"}))
+
+
+def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_verifies_them(run):
     from prep.rawio import sha256_file
 
-    resolved = runconfig.resolve({**load_config(run / "config.yaml"), "profile": "smoke"})
-    learners = [m for m in METHODS if controllers.controller_class(m, resolved).learns]
-    assert learners
+    sources = training_sources(run)
+    trained = sorted(set(sources.values()))
+    assert trained == ["dswm", "dswm_wo_dec"]  # dswm_wo_unc evaluates dswm's model
     for ds in DATASETS:
-        for m in learners:
+        assert not (run / "results" / ds / "dswm_wo_unc" / "seed0" / "model.pt").exists()
+        for m in trained:
             d = run / "results" / ds / m / "seed0"
             man = json.loads((d / "train_manifest.json").read_text())
             assert man["model"] == f"results/{ds}/{m}/seed0/model.pt"
@@ -126,7 +133,41 @@ def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_veri
                 for name in ("demand.parquet", "meta.json")]
     report = json.loads((run / "results" / "audit" / "report.json").read_text())
     chk = next(c for c in report["checks"] if c["id"] == "protocol.checkpoints")
-    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in learners)
+    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in trained)
+
+
+def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifies_it(run):
+    from dswm.evaluation import read_model_record
+    from prep.rawio import sha256_file
+
+    sources = training_sources(run)
+    client, runs = evaluate_runs(run)
+    tags = {(r.data.tags["dataset"], r.data.tags["method"]): r.data.tags for r in runs}
+    for ds in DATASETS:
+        for m in METHODS:
+            rec = read_model_record(run / "results" / ds / m / "seed0" / "days.parquet")
+            if m not in sources:
+                assert rec == {"method": m, "train_source": None, "model": None, "model_sha256": None,
+                               "train_manifest": None}
+                assert "train_source" not in tags[(ds, m)]
+                continue
+            src = run / "results" / ds / sources[m] / "seed0"
+            manifest = json.loads((src / "train_manifest.json").read_text())
+            where = f"results/{ds}/{sources[m]}/seed0"
+            assert rec == {"method": m, "train_source": sources[m], "model": f"{where}/model.pt",
+                           "model_sha256": manifest["model_sha256"], "train_manifest": f"{where}/train_manifest.json"}
+            assert rec["model_sha256"] == sha256_file(src / "model.pt")
+            assert (tags[(ds, m)]["train_source"], tags[(ds, m)]["model_sha256"]) == (sources[m], rec["model_sha256"])
+        wo_unc = read_model_record(run / "results" / ds / "dswm_wo_unc" / "seed0" / "days.parquet")
+        assert wo_unc["model_sha256"] == sha256_file(run / "results" / ds / "dswm" / "seed0" / "model.pt")
+    train_runs = client.search_runs([runs[0].info.experiment_id], filter_string="tags.stage = 'train'")
+    assert sorted((r.data.tags["dataset"], r.data.tags["method"]) for r in train_runs) == \
+        sorted((d, m) for d in DATASETS for m in set(sources.values()))
+    report = json.loads((run / "results" / "audit" / "report.json").read_text())
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.evaluated_models")
+    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in sources)
+    assert chk["evidence"]["milan/dswm_wo_unc/seed0"]["found"] == \
+        sha256_file(run / "results" / "milan" / "dswm" / "seed0" / "model.pt")
 
 
 def evaluate_runs(work):
