@@ -151,6 +151,20 @@ def test_sharing_follows_the_settings_not_the_names(resolved):
                                                  "dswm_wo_dec": "dswm_wo_unc"}
 
 
+def test_planner_and_evaluation_settings_do_not_rerun_training_but_world_model_settings_do(resolved):
+    base = controllers.training_rerun_params(resolved, "dswm")
+    cfg = copy.deepcopy(resolved)
+    cfg["dswm"]["planner"]["lambda_u"] = 0.5
+    cfg["dswm"]["methods"]["dswm_wo_unc"]["planner"] = {"lambda_u": 0.25}
+    cfg["evaluation"]["batch_days"] = not cfg["evaluation"]["batch_days"]
+    assert controllers.training_rerun_params(cfg, "dswm") == base
+    cfg["dswm"]["world_model"]["deter"] = 64
+    assert controllers.training_rerun_params(cfg, "dswm")["training"] != base["training"]
+    cfg = copy.deepcopy(resolved)
+    cfg["scenario"]["n_uavs"] = 12
+    assert controllers.training_rerun_params(cfg, "dswm")["scenario"]["n_uavs"] == 12
+
+
 def test_the_first_method_in_run_order_is_the_training_source(resolved):
     cfg = copy.deepcopy(resolved)
     cfg["methods"]["run"] = ["static", "dswm_wo_unc", "dswm_wo_dec", "dswm"]

@@ -258,3 +258,26 @@ def training_sources(config: Mapping[str, Any]) -> dict[str, str]:
         key = None if identity is None else (f"{cls.__module__}:{cls.__qualname__}", str(identity))
         out[name] = name if key is None else first.setdefault(key, name)
     return out
+
+
+def training_rerun_params(config: Mapping[str, Any], method: str) -> dict:
+    """What a ``train`` job of ``method`` depends on besides its input files (Snakemake reruns it on a change).
+
+    The profile, the scenario, the method's own options and its training identity; for a learning method that
+    declares no identity, the whole ``dswm`` section instead (the safe side). Planner settings, ablation
+    overrides that only act at decision time and the evaluation options are not part of it, so changing them
+    reruns evaluations, never training.
+
+    Args:
+        config: the resolved config (runconfig.resolve); method: a learning method of ``methods.run``.
+    """
+    cls = check_methods(config)[method]
+    identity = cls.training_identity(name=method, config=config)
+    methods = config["methods"]
+    return {
+        "profile": config["profile"],
+        "scenario": config["scenario"],
+        "method": {k: v for k, v in methods.items() if k == method},
+        "user": methods["user"].get(method, {}),
+        "training": identity if identity is not None else config.get("dswm", {}),
+    }

@@ -79,8 +79,13 @@ def meta_files():
     return {d: rules.prepare.output.meta.format(dataset=d) for d in DATASETS}
 
 
+def train_params(wildcards):
+    """What a training job depends on besides its input files: its training identity, not planner settings."""
+    return controllers.training_rerun_params(RUN, wildcards.method)
+
+
 def job_params(wildcards):
-    """What a training/evaluation job depends on besides its input files (a change reruns it)."""
+    """What an evaluation job depends on besides its input files (a change reruns it)."""
     return {
         "profile": PROFILE,
         "eval_days": RUN["run"]["eval_days"],

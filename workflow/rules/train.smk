@@ -11,7 +11,7 @@ rule train:
         model="results/{dataset}/{method}/seed{seed}/model.pt",
         manifest="results/{dataset}/{method}/seed{seed}/train_manifest.json",
     params:
-        job=job_params,
+        job=train_params,
         run_dir=lambda wc: f"results/{wc.dataset}/{wc.method}/seed{wc.seed}/train",
     log:
         "logs/train/{dataset}/{method}/seed{seed}.log",
