@@ -289,28 +289,20 @@ def test_clean_checkpoints_are_proven_by_their_hashes(clean):
                                      for n in ("demand.parquet", "meta.json")}
 
 
-def test_checkpoint_rewritten_with_its_file_time_restored(tree):
+@pytest.mark.parametrize("run_dir, rel, key, what", [
+    ("results/yjmob/dswm/seed0", "train/checkpoint.pt", "checkpoint_sha256", "the checkpoint was"),
+    ("results/milan/dswm/seed0", "model.pt", "model_sha256", "the model file was"),
+])
+def test_trained_file_rewritten_with_its_file_time_restored(tree, run_dir, rel, key, what):
     root, cfg = tree
-    ckpt = root / "results/yjmob/dswm/seed0/train/checkpoint.pt"
-    before = sha(ckpt)
-    rewrite_keeping_time(ckpt, b"rewritten during evaluation")
-    assert ckpt.stat().st_mtime == T0  # the file times alone no longer show the rewrite
+    path = root / run_dir / rel
+    before, mtime = sha(path), path.stat().st_mtime
+    rewrite_keeping_time(path, b"rewritten during evaluation")
+    assert path.stat().st_mtime == mtime  # the file times alone no longer show the rewrite
     chk = run(root, cfg, protocol.check_checkpoints)
     assert chk.failures == [
-        f"results/yjmob/dswm/seed0/train/checkpoint.pt: SHA-256 is {sha(ckpt)}, "
-        f"results/yjmob/dswm/seed0/train_manifest.json recorded checkpoint_sha256 = {before} — the checkpoint was "
-        f"rewritten after training ended"]
-
-
-def test_model_file_rewritten_with_its_file_time_restored(tree):
-    root, cfg = tree
-    model = root / "results/milan/dswm/seed0/model.pt"
-    before = sha(model)
-    rewrite_keeping_time(model, b"another model")
-    chk = run(root, cfg, protocol.check_checkpoints)
-    assert chk.failures == [
-        f"results/milan/dswm/seed0/model.pt: SHA-256 is {sha(model)}, results/milan/dswm/seed0/train_manifest.json "
-        f"recorded model_sha256 = {before} — the model file was rewritten after training ended"]
+        f"{run_dir}/{rel}: SHA-256 is {sha(path)}, {run_dir}/train_manifest.json recorded {key} = {before} — "
+        f"{what} rewritten after training ended"]
 
 
 def test_training_input_changed_after_training(tree):
