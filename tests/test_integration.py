@@ -163,6 +163,10 @@ def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifi
     train_runs = client.search_runs([runs[0].info.experiment_id], filter_string="tags.stage = 'train'")
     assert sorted((r.data.tags["dataset"], r.data.tags["method"]) for r in train_runs) == \
         sorted((d, m) for d in DATASETS for m in set(sources.values()))
+    for r in train_runs:  # the train run names every method whose evaluation loads its model
+        src = r.data.tags["method"]
+        assert r.data.tags["evaluated_as"] == ",".join(m for m in sources if sources[m] == src)
+    assert {r.data.tags["evaluated_as"] for r in train_runs} == {"dswm,dswm_wo_unc", "dswm_wo_dec"}
     report = json.loads((run / "results" / "audit" / "report.json").read_text())
     chk = next(c for c in report["checks"] if c["id"] == "protocol.evaluated_models")
     assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in sources)

@@ -94,6 +94,8 @@ def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str
     budget = cls.budget_from_config(name=method, config=resolved)
     with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="train", dataset=dataset,
                           method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
+        users = [m for m, src in controllers.training_sources(resolved).items() if src == method]
+        run.set_tags({"evaluated_as": ",".join(users or [method])})  # methods whose evaluations load this model
         torch.manual_seed(seed)
         ctrl = cls.from_config(name=method, config=resolved, seed=seed)
         core = training_core(tensor, scenario, device=resolved["evaluation"]["device"])
