@@ -207,7 +207,7 @@ def test_float32_gradients_stay_finite_for_tiny_bandwidth_shares():
     pos = torch.tensor([[[100.0, 0.0], [2000.0, 0.0]]], dtype=torch.float32, requires_grad=True)
     logit = torch.ones(1, 2, dtype=torch.float32, requires_grad=True)
     res = service(x, pos, torch.ones(1, 2, dtype=torch.bool), CELLS.float(), params=PARAMS, bw_logit=logit)
-    assert float(res.share_hz[0, 0]) < 1e-9
+    assert float(res.share_hz[0, 0].detach()) < 1e-9
     res.sr.sum().backward()
     for grad in (x.grad, pos.grad, logit.grad):
         assert torch.isfinite(grad).all()
@@ -224,17 +224,34 @@ def test_gradients_are_finite_and_zero_for_a_uav_right_above_its_cell():
     assert float(path_loss_db(torch.tensor(100.0, dtype=torch.float64))) == pytest.approx(path_loss_db(100.0), abs=1e-9)
 
 
-def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_index():
-    from dswm.physics import associate
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_index(dtype):
+    from dswm.physics import associate, nearest_pairs, nearest_pairs_tensor
 
     gen = torch.Generator().manual_seed(3)
-    cells = torch.rand(50, 2, generator=gen, dtype=torch.float64) * 3000
-    pos = torch.rand(64, 7, 2, generator=gen, dtype=torch.float64) * 3000
+    cells = (torch.rand(50, 2, generator=gen, dtype=torch.float64) * 3000).to(dtype)
+    pos = (torch.rand(64, 7, 2, generator=gen, dtype=torch.float64) * 3000).to(dtype)
     avail = torch.rand(64, 7, generator=gen) > 0.3
     avail[:, 0] = True
-    dist = torch.cdist(cells.unsqueeze(0).expand(64, -1, -1), pos).masked_fill(~avail.unsqueeze(1), float("inf"))
-    assert torch.equal(associate(pos, avail, cells), dist.argmin(-1))
-    # UAVs 2 and 5 at the same spot, alone near the cells: every cell goes to UAV 2.
-    twin = torch.tensor([[[5e4, 5e4]] * 2 + [[100.0, 100.0]] + [[5e4, 5e4]] * 2 + [[100.0, 100.0]] + [[5e4, 5e4]]],
-                        dtype=torch.float64)
-    assert associate(twin, torch.ones(1, 7, dtype=torch.bool), cells[:5]).tolist() == [[2] * 5]
+    dist = torch.cdist(cells.double().unsqueeze(0).expand(64, -1, -1), pos.double())
+    nearest = dist.masked_fill(~avail.unsqueeze(1), float("inf")).argmin(-1)
+    assert torch.equal(associate(pos, avail, cells), nearest)
+    # The compiled CPU kernel and the tensor version (other devices) give the brute-force nearest UAV and its
+    # squared distance, bit for bit the same.
+    idx_k, d2_k = nearest_pairs(pos, avail, cells)
+    idx_t, d2_t = nearest_pairs_tensor(pos, avail, cells)
+    assert torch.equal(idx_k, nearest) and torch.equal(idx_t, nearest)
+    assert d2_k.dtype == dtype and torch.equal(d2_k, d2_t)
+    assert torch.allclose(d2_k.double(), torch.gather(dist, 2, nearest.unsqueeze(-1)).squeeze(-1) ** 2, rtol=1e-5)
+    # UAVs 2 and 5 at the same spot, alone near the cells: every cell goes to UAV 2. UAV 1 is as close as UAV 2
+    # but unavailable. Without any available UAV the index is 0, with UAV 0's distance (and the service model
+    # serves nothing).
+    far, near = [5e4, 5e4], [100.0, 100.0]
+    twin = torch.tensor([[far, near, near, far, far, near, far]] * 2, dtype=dtype)
+    twin_avail = torch.tensor([[True, False, True, True, True, True, True], [False] * 7])
+    for fn in (nearest_pairs, nearest_pairs_tensor):
+        idx, d2 = fn(twin, twin_avail, cells[:5])
+        assert idx.tolist() == [[2] * 5, [0] * 5]
+        far_d2 = ((cells[:5] - torch.tensor(far, dtype=dtype)) ** 2).sum(-1)
+        assert torch.allclose(d2[1], far_d2) and not torch.allclose(d2[0], far_d2)
+

@@ -2,7 +2,8 @@
 the world model's decomposed service head.
 
 Chain for a batch of N candidate fleets, K UAVs and G cells:
-nearest-available association (distances for every (candidate, cell, UAV), no transcendental work)
+nearest-available association (distances for every (candidate, cell, UAV), no transcendental work; a
+compiled kernel on CPU, ``dswm.kernels``)
 -> elevation angle, Al-Hourani LoS probability and dB-mixed path loss for the ASSOCIATED pair only
 -> per-UAV bandwidth split with weights x_g^tau_k, tau_k = exp(bw_logit_k)
 -> Shannon rate -> capped fulfilment f_g = min(1, R_g / (x_g u r0)) -> served ratio sum x f / sum x.
@@ -20,6 +21,7 @@ from typing import NamedTuple
 import torch
 
 from dswm.config import Scenario
+from dswm.kernels import nearest_available
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 # Demand below this (in normalized units, i.e. a 1e-9 fraction of the training p99) counts as no demand:
@@ -156,25 +158,41 @@ def associate(pos: torch.Tensor, available: torch.Tensor, cells: torch.Tensor) -
         cells: (G, 2) cell centres in metres.
 
     Returns:
-        (N, G) int64 index of the nearest available UAV (arbitrary where none is available).
-
-    The squared distance is compared as |p|^2 - 2 c.p (the |c|^2 term does not change the argmin over UAVs);
-    ties go to the lowest UAV index. One baddbmm gives the (N, K, G) distances, their minimum over UAVs
-    is taken along the middle axis (vectorized over cells), and the first UAV that attains it is found with a
-    byte-weighted max (``min(...).indices`` and argmin over a short axis are several times slower on CPU).
+        (N, G) int64 index of the nearest available UAV (0 where none is available). Ties go to the lowest
+        UAV index. Not differentiable (an index): gradients reach positions through the associated pair.
     """
+    return nearest_pairs(pos, available, cells)[0]
+
+
+def nearest_pairs(pos: torch.Tensor, available: torch.Tensor,
+                  cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``associate`` and the squared horizontal distance of every cell to its UAV (N, G), not differentiable.
+
+    On CPU the compiled kernel ``dswm.kernels.nearest_available`` does it in one pass per candidate; on other
+    devices ``nearest_pairs_tensor`` does. Both compute the squared distance the same way and agree exactly.
+    """
+    if pos.device.type == "cpu":
+        return nearest_available(pos, available, cells)
+    return nearest_pairs_tensor(pos, available, cells)
+
+
+def nearest_pairs_tensor(pos: torch.Tensor, available: torch.Tensor,
+                         cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``nearest_pairs`` with tensor operations over the (N, K, G) distances (any device; same arguments)."""
     with torch.no_grad():
         p = pos.detach()
-        n, k = p.shape[:2]
-        p_sq = (p * p).sum(-1).masked_fill(~available, float("inf"))  # (N, K)
         c = cells.to(p.dtype)
-        c_t = (-2.0 * c).T.unsqueeze(0).expand(n, -1, -1)                        # (N, 2, G)
-        d2 = torch.baddbmm(p_sq.unsqueeze(2), p, c_t)                            # (N, K, G)
-        hit = d2 <= d2.amin(dim=1, keepdim=True)                                 # (N, K, G) attains the min
-        # First hit = largest weight K-1-j among the hits.
-        wdtype = torch.uint8 if k <= 256 else torch.int32
-        weight = torch.arange(k - 1, -1, -1, dtype=wdtype, device=p.device).view(1, k, 1)
-        return (k - 1) - (hit * weight).amax(dim=1).long()
+        dx = c[:, 0].view(1, 1, -1) - p[..., 0:1]                           # (N, K, G) cell minus UAV
+        dy = c[:, 1].view(1, 1, -1) - p[..., 1:2]
+        d2 = dx * dx + dy * dy
+        idx = d2.masked_fill(~available.unsqueeze(-1), float("inf")).argmin(dim=1)   # first minimum
+        return idx, torch.gather(d2, 1, idx.unsqueeze(1)).squeeze(1)
+
+
+def _above(x: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Float mask (1.0 / 0.0) of x > threshold, not differentiable. Float masks, not bool ones: on CPU a
+    comparison written into a float tensor, and products with it, cost a fraction of bool masks and where()."""
+    return torch.gt(x.detach(), threshold, out=torch.empty(x.shape, dtype=x.dtype, device=x.device))
 
 
 def service(
@@ -198,23 +216,30 @@ def service(
 
     Returns:
         ServiceResult with sr (N,), fulfilment/assoc/rate_bps/share_hz (N, G).
+
+    Cells without demand are handled with 0/1 float masks (``has``, ``hasnt``) instead of where(): every
+    guarded quantity stays finite (log of 1, shares floored), and multiplying by the mask zeroes its value
+    and its gradient.
     """
     n, k, _ = pos.shape
     x = demand.to(pos.dtype)
     if x.dim() == 1:
         x = x.unsqueeze(0)
     x = x.expand(n, -1)
-    x = torch.where(x > DEMAND_EPS, x, torch.zeros_like(x))
-    assoc = associate(pos, available, cells)  # (N, G)
-    has_demand = x > 0
-    x_safe = torch.where(has_demand, x, torch.ones_like(x))
+    has = _above(x, DEMAND_EPS)                        # (N, G) 1.0 where the cell has demand
+    x = x * has
+    hasnt = 1.0 - has
+    x_safe = x + hasnt                                 # 1 where the cell has no demand
+    assoc, horiz2 = nearest_pairs(pos, available, cells)  # (N, G)
 
     # Channel of the associated pair only: O(N*G) transcendental work. The linear gain 10^(-PL/10) of
     # ``path_loss_db`` is written as (lambda / 4 pi)^2 / d^2 * 10^(-excess/10): no log10 and no pow per pair.
-    c = cells.to(pos.dtype)
-    dx = torch.gather(pos[..., 0], 1, assoc) - c[:, 0]  # (N, G) serving UAV minus cell centre
-    dy = torch.gather(pos[..., 1], 1, assoc) - c[:, 1]
-    horiz2 = dx * dx + dy * dy
+    if pos.requires_grad and torch.is_grad_enabled():
+        # The same squared distance, differentiable in the serving UAV's position.
+        c = cells.to(pos.dtype)
+        dx = torch.gather(pos[..., 0], 1, assoc) - c[:, 0]  # (N, G) serving UAV minus cell centre
+        dy = torch.gather(pos[..., 1], 1, assoc) - c[:, 1]
+        horiz2 = dx * dx + dy * dy
     dist2 = horiz2 + params.altitude_m**2
     theta = elevation_deg(None, params.altitude_m, horizontal_sq=horiz2)
     p_los = los_probability(theta, params.los_a, params.los_b)
@@ -224,19 +249,21 @@ def service(
 
     # Bandwidth split over the UAV's associated cells with weights x^tau (zero-demand cells get nothing).
     if bw_logit is None:
-        weight = torch.where(has_demand, x, torch.zeros_like(x))
+        weight = x
     else:
         tau = torch.gather(torch.exp(bw_logit.to(pos.dtype)), 1, assoc)   # exp on (N, K), then per cell
-        weight = torch.where(has_demand, torch.exp(tau * torch.log(x_safe)), torch.zeros_like(x))
+        weight = torch.exp(tau * torch.log(x_safe)) * has
     weight_sum = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, weight)
-    denom = torch.gather(weight_sum, 1, assoc)
-    share = params.bandwidth_hz * weight / torch.where(denom > 0, denom, torch.ones_like(denom))
-    share_safe = torch.where(has_demand, share.clamp(min=SHARE_FLOOR_HZ), torch.ones_like(share))
+    # A cell with demand has weight >= 1e-9^e > 0 in its own UAV's sum; a UAV whose cells have none has sum 0
+    # and shares 0 / tiny = 0.
+    denom = torch.gather(weight_sum, 1, assoc).clamp_min(torch.finfo(pos.dtype).tiny)
+    share = params.bandwidth_hz * weight / denom
+    share_safe = share.clamp(min=SHARE_FLOOR_HZ)
 
     # Shannon rate and capped fulfilment.
-    rate = torch.where(has_demand, share_safe * torch.log2(1.0 + snr_hz / share_safe), torch.zeros_like(x))
+    rate = share_safe * torch.log2(1.0 + snr_hz / share_safe) * has
     requested = x_safe * (params.demand_intensity * params.r0_bps)
-    fulfil = torch.clamp(rate / requested, max=1.0)  # 0 without demand: rate 0 over requested 1
+    fulfil = torch.clamp(rate / requested, max=1.0)  # 0 without demand: rate 0 over requested r0
 
     any_available = available.any(dim=-1)  # (N,)
     fulfil = fulfil * any_available.unsqueeze(-1).to(fulfil.dtype)
