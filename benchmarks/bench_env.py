@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from _timing import write
+from dswm.allocator import keep_freed_memory
 from dswm.env import FleetCore, Grid, default_scenario, initial_positions, synthetic_demand
 
 
@@ -20,6 +21,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    keep_freed_memory()   # as every job does (dswm.jobs)
     scenario = default_scenario()
     grid = Grid(rows=20, cols=20, cell_m=235.0)
     demand = synthetic_demand(days=8, rows=20, cols=20, slots=scenario.slots_per_day)

@@ -24,6 +24,7 @@ import torch
 import yaml
 
 from _timing import RESULTS, median_ms, write
+from dswm.allocator import keep_freed_memory
 from dswm.agent import DSWMController, settings
 from dswm.config import Scenario
 from dswm.controllers import DayContext
@@ -145,6 +146,7 @@ def main() -> None:
     ap.add_argument("--train-steps", type=int, default=20)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    keep_freed_memory()   # as every job does (dswm.jobs)
     load0 = __import__("os").getloadavg()[0]
     cfg = yaml.safe_load((RESULTS.parents[1] / "config.yaml").read_text())
     scenario = Scenario.from_dict(cfg["scenario"])

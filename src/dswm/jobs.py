@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from dswm import calibration, controllers, evaluation, runconfig, tables, tracking
+from dswm.allocator import keep_freed_memory
 from dswm.atomic import save_npz, write_json
 from dswm.config import Scenario
 from dswm.core import FleetCore, Grid
@@ -61,6 +62,7 @@ def prepared_files_read(tensor_dir: str | Path) -> list[dict]:
 def _setup(config: Mapping[str, Any]) -> tuple[dict, Scenario]:
     resolved = runconfig.resolve(config)
     torch.set_num_threads(int(resolved["evaluation"]["torch_threads"]))
+    keep_freed_memory()
     return resolved, Scenario.from_dict(resolved["scenario"])
 
 
