@@ -81,6 +81,6 @@ def nearest_available(pos: torch.Tensor, available: torch.Tensor,
     idx = torch.empty((n, g), dtype=torch.int64)
     d2 = torch.empty((n, g), dtype=p.dtype)
     kernel(p[..., 0].contiguous().numpy(), p[..., 1].contiguous().numpy(),
-                       available.detach().to(torch.bool).contiguous().numpy(),
-                       c[:, 0].contiguous().numpy(), c[:, 1].contiguous().numpy(), idx.numpy(), d2.numpy())
+           available.detach().to(torch.bool).contiguous().numpy(),
+           c[:, 0].contiguous().numpy(), c[:, 1].contiguous().numpy(), idx.numpy(), d2.numpy())
     return idx, d2

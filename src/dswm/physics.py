@@ -189,6 +189,11 @@ def nearest_pairs_tensor(pos: torch.Tensor, available: torch.Tensor,
         return idx, torch.gather(d2, 1, idx.unsqueeze(1)).squeeze(1)
 
 
+def sum_per_uav(values: torch.Tensor, assoc: torch.Tensor, k: int) -> torch.Tensor:
+    """Sum of ``values`` (N, G) over the cells each of the K UAVs serves (``assoc`` (N, G)): (N, K)."""
+    return torch.zeros(values.shape[0], k, dtype=values.dtype, device=values.device).scatter_add(1, assoc, values)
+
+
 def _above(x: torch.Tensor, threshold: float) -> torch.Tensor:
     """Float mask (1.0 / 0.0) of x > threshold, not differentiable. Float masks, not bool ones: on CPU a
     comparison written into a float tensor, and products with it, cost a fraction of bool masks and where()."""
@@ -253,7 +258,7 @@ def service(
     else:
         tau = torch.gather(torch.exp(bw_logit.to(pos.dtype)), 1, assoc)   # exp on (N, K), then per cell
         weight = torch.exp(tau * torch.log(x_safe)) * has
-    weight_sum = torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, weight)
+    weight_sum = sum_per_uav(weight, assoc, k)
     # A cell with demand has weight >= 1e-9^e > 0 in its own UAV's sum; a UAV whose cells have none has sum 0
     # and shares 0 / tiny = 0.
     denom = torch.gather(weight_sum, 1, assoc).clamp_min(torch.finfo(pos.dtype).tiny)

@@ -27,7 +27,7 @@ import torch
 
 from dswm.config import Scenario
 from dswm.fleet import FleetState, Geometry, available, fleet_step
-from dswm.physics import ServiceParams, service
+from dswm.physics import ServiceParams, service, sum_per_uav
 from dswm.rssm import LatentState, map_state
 
 PROPOSALS = ("none", "bcd")
@@ -158,13 +158,9 @@ def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: t
     """
     n, k, _ = pos.shape
     x = x.expand(n, -1)
-
-    def per_uav(v: torch.Tensor) -> torch.Tensor:   # (N, G) -> (N, K) sum over each UAV's cells
-        return torch.zeros(n, k, dtype=pos.dtype, device=pos.device).scatter_add(1, assoc, v)
-
     # One scatter per quantity: a scatter with an expanded (N, G, 2) index is several times slower on CPU.
-    mass = per_uav(x)
-    wsum = torch.stack([per_uav(x * cells[:, 0]), per_uav(x * cells[:, 1])], -1)
+    mass = sum_per_uav(x, assoc, k)
+    wsum = torch.stack([sum_per_uav(x * cells[:, 0], assoc, k), sum_per_uav(x * cells[:, 1], assoc, k)], -1)
     target = torch.where(mass.unsqueeze(-1) > 0, wsum / mass.clamp_min(1e-12).unsqueeze(-1), pos)
     move = (target - pos) / d_max
     return move / torch.linalg.vector_norm(move, dim=-1, keepdim=True).clamp_min(1.0)
