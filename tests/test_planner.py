@@ -154,3 +154,31 @@ def test_planner_warm_start_and_reproducibility(scenario):
     _, r2 = p1.plan(lambda a: -((a - shifted) ** 2).flatten(1).sum(-1))
     assert r2.best_score == 0.0 and torch.equal(r2.best, shifted)
     assert tuple(p1.prev_mean.shape) == (4, scenario.n_uavs, 3)
+
+
+@pytest.mark.parametrize("use_model", [True, False])
+def test_compiled_imagination_matches_the_eager_one(scenario, use_model):
+    """``planner.compile`` runs the same imagined step through torch.compile: same scores, same taken actions."""
+    torch.manual_seed(0)
+    grid, geom, cells, params = _grid_setup(scenario)
+    g, k, horizon = grid.n_cells, scenario.n_uavs, 4
+    model = _constant_head_model(scenario, grid, cells, params, torch.rand(3, g) * 2.0)
+    with torch.no_grad():                                 # heads that depend on the imagined latent state
+        model.demand.w2.normal_(0.0, 0.5)
+    rng = np.random.default_rng(5)
+    fleet = fleet_state_from_obs(np.concatenate([rng.uniform(0, 1, (k, 2)), rng.uniform(0.2, 1.0, (k, 1)),
+                                                 np.tile([[1, 0, 0, 0]], (k, 1))], 1), grid, scenario)
+    truth = torch.rand(horizon, g) * 3.0
+    actions = torch.rand(8, horizon, k, 3) * 2 - 1
+    common = dict(model=model if use_model else None, latent=model.rssm.initial(1) if use_model else None,
+                  fleet=fleet, x_now=torch.rand(g), geom=geom, scenario=scenario, params=params, cells=cells,
+                  gamma=0.9, rho=0.9, lambda_u=1.0, continuation="lloyd",
+                  demand_override=None if use_model else truth)
+    eager, compiled = ImaginationScorer(**common), ImaginationScorer(**common, compile=True)
+    want = eager(actions)
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    got = compiled(actions)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 2   # first step, later steps
+    assert float(want.abs().min()) > 0.1                  # non-trivial scores
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
+    torch.testing.assert_close(compiled.last_actions, eager.last_actions, rtol=0, atol=1e-5)

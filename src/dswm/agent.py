@@ -263,7 +263,8 @@ class DSWMController(Controller):
             scorer = ImaginationScorer(model=self.model, latent=self.latent, fleet=fleet,
                                        x_now=demand[-1].reshape(-1), geom=self.geom, scenario=self.scenario,
                                        params=self.params, cells=self.cells, gamma=cfg.gamma, rho=cfg.rho,
-                                       lambda_u=cfg.lambda_u, continuation=cfg.continuation)
+                                       lambda_u=cfg.lambda_u, continuation=cfg.continuation,
+                                       compile=cfg.compile)
             action, _ = self.planner.plan(scorer, self._proposals(obs, demand[-1].reshape(-1)))
         self.last_action = action.unsqueeze(0)
         self.plan_ms.append(1000.0 * (time.perf_counter() - t0))

@@ -21,6 +21,7 @@ Design choices beyond Algorithm 1 (config.yaml ``dswm.planner`` gives the eviden
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
 import torch
@@ -72,6 +73,8 @@ class PlannerConfig:
     """Rounds of half-spacing refinement of each UAV's lattice point in the proposal."""
     proposal_bw_logits: tuple
     """Bandwidth logits the proposal searches per UAV (must include 0)."""
+    compile: bool = False
+    """Run the imagined steps compiled by ``torch.compile`` (``ImaginationScorer``)."""
 
 
 class CEMResult(NamedTuple):
@@ -166,6 +169,46 @@ def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: t
     return move / torch.linalg.vector_norm(move, dim=-1, keepdim=True).clamp_min(1.0)
 
 
+def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torch.Tensor,
+                  x_prev: torch.Tensor | None, assoc: torch.Tensor | None, *, x_now: torch.Tensor,
+                  x_true: torch.Tensor | None, cells: torch.Tensor, geom: Geometry, scenario: Scenario,
+                  params: ServiceParams, rho: float, lambda_u: float, continuation: str, first: bool):
+    """One imagined slot of N candidates (the body of ``ImaginationScorer``; see there).
+
+    Args:
+        model: the world model (unused with ``x_true``); fleet: FleetState with fields (N, K, ...);
+        state: RSSM state (N, .) or None with ``x_true``; act: (N, K, 3) sampled action of this step;
+        x_prev, assoc: (N, G) demand and association of the previous imagined slot (None when ``first``);
+        x_now: (G,) observed map; x_true: (G,) true map of this slot, or None for the model's anchored map;
+        first: the step that executes the first action (no continuation).
+    Returns:
+        (fleet, state, action taken (N, K, 3), demand (N, G), association (N, G), reward SR - lambda_u u (N,)).
+    """
+    # Continuation: later steps ride on a Lloyd step of the previous imagined slot.
+    if not first and continuation == "lloyd":
+        base = lloyd_step(x_prev, assoc, fleet.pos, cells, scenario.d_max_m)
+        act = torch.cat([(act[..., :2] + base).clamp(-1.0, 1.0), act[..., 2:]], -1)
+    # Fleet kinematics and batteries: the environment's own rules.
+    fleet, _ = fleet_step(fleet, act, geom, scenario)
+    avail = available(fleet)                                                     # (N, K)
+    if x_true is not None:
+        res = service(x_true, fleet.pos, avail, cells, params=params, bw_logit=act[..., 2])
+        return fleet, state, act, x_true, res.assoc, res.sr
+    # Prior rollout, anchored demand ensemble, service head.
+    rssm = model.rssm
+    state = rssm.img_step(state, act.flatten(1), sample=False)
+    feat = rssm.feat(state)                                                      # (N, F)
+    x_hat, u = anchor(x_now, model.demand_members(feat), rho)
+    sr, assoc = model.serve(feat, x_hat, fleet.pos, avail, act[..., 2], need_assoc=continuation == "lloyd")
+    return fleet, state, act, x_hat, assoc, sr - lambda_u * u
+
+
+@functools.cache
+def _compiled_step():
+    """``imagined_step`` compiled by ``torch.compile`` (one whole graph per shape and step kind, built on first use)."""
+    return torch.compile(imagined_step, dynamic=False, fullgraph=True)
+
+
 class ImaginationScorer:
     """Scores N candidate sequences (N, H, K, 3) from one decision point (see module docstring).
 
@@ -173,17 +216,20 @@ class ImaginationScorer:
     "hold" takes the sampled sequence as it is (open loop); "lloyd" adds the sampled (dx, dy) of every later
     step to a Lloyd step toward the centroid of each UAV's served demand, so that imagined UAVs keep
     repositioning (e.g. fly back to demand after charging) instead of freezing where the sequence left them.
+    With ``compile`` each imagined step runs as code compiled by ``torch.compile``: the same functions, fused
+    into a few loops (the first call in a process compiles, seconds).
     """
 
     def __init__(self, *, model, latent: LatentState | None, fleet: FleetState, x_now: torch.Tensor,
                  geom: Geometry, scenario: Scenario, params: ServiceParams, cells: torch.Tensor, gamma: float,
                  rho: float, lambda_u: float, continuation: str = "hold",
-                 demand_override: torch.Tensor | None = None):
+                 demand_override: torch.Tensor | None = None, compile: bool = False):
         """Args:
             model: a ``WorldModel`` (may be None only with ``demand_override``).
             latent: posterior state at t, fields (1, .); fleet: FleetState at t with fields (K, ...).
             x_now: (G,) observed map x_t; cells: (G, 2); continuation: "hold" or "lloyd";
-            demand_override: (H, G) true maps x_{t+1..t+H} (then no anchoring and no uncertainty).
+            demand_override: (H, G) true maps x_{t+1..t+H} (then no anchoring and no uncertainty);
+            compile: run the imagined steps compiled (``planner.compile``).
         """
         if model is None and demand_override is None:
             raise ValueError("ImaginationScorer: a world model is needed unless demand_override is given")
@@ -193,6 +239,7 @@ class ImaginationScorer:
         self.geom, self.scenario, self.params, self.cells = geom, scenario, params, cells
         self.gamma, self.rho, self.lambda_u, self.override = gamma, rho, lambda_u, demand_override
         self.continuation = continuation
+        self.step = _compiled_step() if compile else imagined_step
         self.last_actions: torch.Tensor | None = None
 
     @torch.no_grad()
@@ -205,28 +252,13 @@ class ImaginationScorer:
         score = torch.zeros(n, dtype=actions.dtype, device=actions.device)
         taken, x_prev, assoc = [], None, None
         for tau in range(horizon):
-            act = actions[:, tau]                                                # (N, K, 3)
-            # Continuation: later steps ride on a Lloyd step of the previous imagined slot.
-            if tau > 0 and self.continuation == "lloyd":
-                base = lloyd_step(x_prev, assoc, fleet.pos, self.cells, self.scenario.d_max_m)
-                act = torch.cat([(act[..., :2] + base).clamp(-1.0, 1.0), act[..., 2:]], -1)
+            fleet, state, act, x_prev, assoc, reward = self.step(
+                self.model, fleet, state, actions[:, tau], x_prev, assoc, x_now=self.x_now,
+                x_true=None if self.override is None else self.override[tau], cells=self.cells, geom=self.geom,
+                scenario=self.scenario, params=self.params, rho=self.rho, lambda_u=self.lambda_u,
+                continuation=self.continuation, first=tau == 0)
             taken.append(act)
-            # Fleet kinematics and batteries: the environment's own rules.
-            fleet, _ = fleet_step(fleet, act, self.geom, self.scenario)
-            avail = available(fleet)                                             # (N, K)
-            if self.override is not None:
-                x_prev, u = self.override[tau], 0.0
-                res = service(x_prev, fleet.pos, avail, self.cells, params=self.params, bw_logit=act[..., 2])
-                sr, assoc = res.sr, res.assoc
-            else:
-                # Prior rollout, anchored demand ensemble, service head.
-                rssm = self.model.rssm
-                state = rssm.img_step(state, act.flatten(1), sample=False)
-                feat = rssm.feat(state)                                          # (N, F)
-                x_prev, u = anchor(self.x_now, self.model.demand_members(feat), self.rho)
-                sr, assoc = self.model.serve(feat, x_prev, fleet.pos, avail, act[..., 2],
-                                             need_assoc=self.continuation == "lloyd")
-            score += self.gamma ** (tau + 1) * (sr - self.lambda_u * u)
+            score += self.gamma ** (tau + 1) * reward
         self.last_actions = torch.stack(taken, 1)
         return score
 
