@@ -6,10 +6,11 @@ Writes benchmarks/results/planner_<device>_t<threads>.json and .png.
 Per-slot planning is timed at the paper's production settings (N_cem=512, 6 iterations, H=15, E=5, K=16,
 G=400 on a 20x20 grid), with the configured proposal and continuation and without them (plain CEM), and at
 the demo and smoke planner sizes of config.yaml; the paper profile runs the imagined steps compiled
-(``planner.compile``), and the same production planner is also timed eager. One imagined step is broken down into
-its eager parts (RSSM prior, demand ensemble + anchoring, fleet kinematics, service physics). Training throughput is gradient steps per
-second at the configured batch and sequence length. Target on a 2-core machine: <= 300 ms per slot.
-Weights are untrained: the cost does not depend on their values. The machine's load average is recorded;
+(``planner.compile``), and the same production planner is also timed eager. One imagined step is broken
+down into its eager parts (RSSM prior, demand ensemble + anchoring, fleet kinematics, service physics).
+Training throughput is gradient steps per second at the configured batch and sequence length. Target on a
+2-core machine: <= 300 ms per slot. Weights are untrained: the cost does not depend on their values. The
+machine's load average is recorded;
 on a shared machine under load, two torch threads can be many times slower than one (OpenMP contention),
 so compare --threads 1 and 2.
 """

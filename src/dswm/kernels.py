@@ -70,8 +70,19 @@ def nearest_available(pos: torch.Tensor, available: torch.Tensor,
     Returns: ((N, G) int64 UAV index, 0 where no UAV is available; (N, G) squared horizontal distance in m^2
         to that UAV, in pos's dtype, not differentiable).
     Runs on min(torch's intra-op threads, numba's thread pool) threads; on one thread without a thread pool.
-    Code compiled by ``torch.compile`` calls it through the operator ``nearest_available_op``.
+    Inside a graph compiled by ``torch.compile`` (the planner's imagined step, ``planner.compile``) it is the
+    torch operator ``dswm::nearest_available``, one opaque step of the graph. Eager code calls the kernel
+    directly, which saves the operator's dispatch (~25 us, paid per call by the proposal search's many small
+    batches).
     """
+    if torch.compiler.is_compiling():
+        return _nearest_op(pos, available, cells)
+    return _nearest(pos, available, cells)
+
+
+def _nearest(pos: torch.Tensor, available: torch.Tensor,
+             cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``nearest_available`` by the numba kernels."""
     threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
     if threads > 1 and numba.get_num_threads() != threads:
         numba.set_num_threads(threads)
@@ -88,17 +99,14 @@ def nearest_available(pos: torch.Tensor, available: torch.Tensor,
 
 
 @torch.library.custom_op("dswm::nearest_available", mutates_args=())
-def nearest_available_op(pos: torch.Tensor, available: torch.Tensor,
-                         cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``nearest_available`` as the torch operator ``dswm::nearest_available``: graphs compiled by
-    ``torch.compile`` (the planner's imagined step, ``planner.compile``) call it as one opaque step. Eager
-    code calls the function itself, which saves the operator's dispatch (~25 us, paid per call by the
-    proposal search's many small batches)."""
-    return nearest_available(pos, available, cells)
+def _nearest_op(pos: torch.Tensor, available: torch.Tensor,
+                cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_nearest`` as the torch operator ``dswm::nearest_available`` (for compiled graphs)."""
+    return _nearest(pos, available, cells)
 
 
-@nearest_available_op.register_fake
-def _nearest_available_shapes(pos, available, cells):
+@_nearest_op.register_fake
+def _nearest_op_shapes(pos, available, cells):
     """Output shapes and dtypes for tracing."""
     n, g = pos.shape[0], cells.shape[0]
     return pos.new_empty((n, g), dtype=torch.int64), pos.new_empty((n, g))

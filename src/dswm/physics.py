@@ -21,7 +21,7 @@ from typing import NamedTuple
 import torch
 
 from dswm.config import Scenario
-from dswm.kernels import nearest_available, nearest_available_op
+from dswm.kernels import nearest_available
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 # Demand below this (in normalized units, i.e. a 1e-9 fraction of the training p99) counts as no demand:
@@ -172,8 +172,6 @@ def nearest_pairs(pos: torch.Tensor, available: torch.Tensor,
     devices ``nearest_pairs_tensor`` does. Both compute the squared distance the same way and agree exactly.
     """
     if pos.device.type == "cpu":
-        if torch.compiler.is_compiling():
-            return nearest_available_op(pos, available, cells)
         return nearest_available(pos, available, cells)
     return nearest_pairs_tensor(pos, available, cells)
 
