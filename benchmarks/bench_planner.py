@@ -7,7 +7,9 @@ Per-slot planning is timed at the paper's production settings (N_cem=512, 6 iter
 G=400 on a 20x20 grid), with the configured proposal and continuation and without them (plain CEM), and at
 the demo and smoke planner sizes of config.yaml; the paper profile runs the imagined steps compiled
 (``planner.compile``), and the same production planner is also timed eager. One imagined step is broken
-down into its eager parts (RSSM prior, demand ensemble + anchoring, fleet kinematics, service physics).
+down into its eager parts (RSSM prior, demand ensemble + anchoring, fleet kinematics, service physics), and
+the model's compiled share of it times the 90 imagined steps of a production slot is recorded as a floor under
+planning time that no change to the physics, the association or the proposal can go below.
 Training throughput is gradient steps per second at the configured batch and sequence length. Target on a
 2-core machine: <= 300 ms per slot. Weights are untrained: the cost does not depend on their values. The
 machine's load average is recorded;
@@ -91,6 +93,28 @@ def _breakdown(ctl: DSWMController, core: FleetCore, n: int) -> dict:
     return {key: round(v, 2) for key, v in parts.items()}
 
 
+def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> dict:
+    """A floor under per-slot planning: the model's share of ONE imagined step, compiled as the paper profile
+    compiles it (RSSM prior, demand ensemble and anchoring, fleet kinematics; no service physics, association,
+    continuation, CEM bookkeeping or proposal), times the ``steps`` imagined steps of a slot."""
+    model, dev = ctl.model, ctl.device
+    state = model.rssm.initial(n, device=dev)
+    act = torch.rand(n, core.scenario.n_uavs, 3, device=dev) * 2 - 1
+    fleet = type(core.state)(*(t[0].to(dev) for t in core.state)).expand(n)
+    x_now = core.demand[0, 0].to(dev)
+
+    def model_part(state, fleet, act):
+        nxt, _ = fleet_step(fleet, act, core.geom, core.scenario)
+        feat = model.rssm.feat(model.rssm.img_step(state, act.flatten(1), sample=False))
+        return nxt, anchor(x_now, model.demand_members(feat), 0.95)
+
+    compiled = torch.compile(model_part, dynamic=False, fullgraph=True)
+    with torch.inference_mode():
+        ms = median_ms(lambda: compiled(state, fleet, act), reps=20)
+    return {"ms_per_imagined_step": round(ms, 2), "imagined_steps_per_slot": steps,
+            "ms_per_slot": round(ms * steps, 1)}
+
+
 def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
     s = settings(cfg["dswm"], method="dswm", profile="demo")
     rep = collect(core, n_transitions=2 * 143, cfg=s.training, seed=0, day_ids=np.arange(core.n_days))
@@ -124,6 +148,8 @@ def _figure(result: dict, path) -> None:
     vals = [result["per_slot"][n]["median_ms"] for n in names]
     axes[0].barh(names, vals, color="tab:blue")
     axes[0].axvline(300, color="tab:red", ls="--", label="target 300 ms")
+    floor = result["model_only_floor_compiled"]["ms_per_slot"]
+    axes[0].axvline(floor, color="tab:green", ls=":", label=f"model-only floor {floor:.0f} ms")
     axes[0].set_xlabel("median planning time per slot (ms)")
     axes[0].set_xscale("log")
     axes[0].legend(fontsize=8)
@@ -176,6 +202,8 @@ def main() -> None:
     result = {"device": args.device, "threads": args.threads, "load_avg_1min_start": load0,
               "grid": [20, 20], "K": scenario.n_uavs, "E": ctl.settings.wm_config(scenario.n_uavs).ensemble,
               "per_slot": per_slot, "imagined_step_breakdown_ms": _breakdown(ctl, core, 512),
+              "model_only_floor_compiled": _model_floor(ctl, core, 512,
+                                                        production["iterations"] * production["horizon"]),
               "training": _train_throughput(cfg, core, args.device, args.train_steps),
               "target_ms_per_slot": 300}
     name = f"planner_{args.device.split(':')[0]}_t{args.threads}"
