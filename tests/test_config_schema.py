@@ -58,6 +58,11 @@ def test_the_repository_config_is_valid_and_every_level_refuses_unknown_keys(con
      ["'methods.user.mine.class'", "package.module:ClassName"]),
     (lambda c: c["datasets"]["shanghai"].update(source="real"), ["'datasets.shanghai.source'", "demo", "raw"]),
     (lambda c: c["dswm"]["budgets"]["smoke"].update(stepz=1), ["unknown key 'dswm.budgets.smoke.stepz'"]),
+    (lambda c: c["scenario"].update(slots_per_day=96), ["'scenario.slots_per_day'", "144", "found 96"]),
+    (lambda c: c["scenario"].update(reserve_frac=0), ["'scenario.reserve_frac'", "strictly between 0 and 1"]),
+    (lambda c: c["dswm"]["planner"].update(proposal_bw_logits=[-0.5, 0.5]),
+     ["'dswm.planner.proposal_bw_logits'", "includes 0", "[-0.5, 0.5]"]),
+    (lambda c: c["methods"]["oracle"].update(bw_logits=[1.0]), ["'methods.oracle.bw_logits'", "includes 0"]),
 ])
 def test_bad_keys_and_values_are_named_with_the_expected_form(config, mutate, words):
     bad = copy.deepcopy(config)
@@ -102,14 +107,23 @@ def test_raw_source_without_its_files_is_refused(config, tmp_path):
         runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)
 
 
-def test_snakemake_stops_before_any_job_on_a_bad_config(config, tmp_path):
+@pytest.mark.parametrize("mutate, words", [
+    (lambda c: c["profiles"]["demo"]["seeds"].update(shanghai=[]),       # the schema
+     ["profiles.demo.seeds.shanghai", "non-empty list"]),
+    (lambda c: c["scenario"].update(obs_window=144),                    # the scenario's cross-key checks
+     ["scenario.slots_per_day", "more than obs_window"]),
+    (lambda c: c["dswm"]["budgets"]["demo"]["planner"].update(n_elites=65),   # the merged DSWM planner
+     ["method 'dswm'", "dswm.planner.n_elites", "dswm.budgets.demo.planner", "n_elites=65, n_samples=64"]),
+])
+def test_snakemake_stops_before_any_job_on_a_bad_config(config, tmp_path, mutate, words):
     bad = copy.deepcopy(config)
-    bad["profiles"]["demo"]["seeds"]["shanghai"] = []
+    mutate(bad)
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
     snakemake = os.path.join(os.path.dirname(sys.executable), "snakemake")
     proc = subprocess.run([snakemake, "tables", "-n", "--cores", "1", "--configfile", str(tmp_path / "bad.yaml")],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode != 0
-    assert "profiles.demo.seeds.shanghai" in out and "non-empty list" in out
+    for w in words:
+        assert w in out, f"{w!r} not in: {out[-2000:]}"
     assert "Job stats" not in out  # nothing was scheduled

@@ -90,6 +90,14 @@ def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMS
     if planner.get("proposal") not in PROPOSALS:
         raise ValueError(f"config.yaml: key 'dswm.planner.proposal' must be one of {PROPOSALS}, "
                          f"found {planner.get('proposal')!r}")
+    # Cross-key checks on the MERGED planner (base section, profile budget, method override).
+    merged = f"(after the 'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides)"
+    if not 1 <= int(planner.get("n_elites", 0)) <= int(planner.get("n_samples", 0)):
+        raise ValueError(f"config.yaml: key 'dswm.planner.n_elites' must lie in [1, n_samples] {merged}; found "
+                         f"n_elites={planner.get('n_elites')!r}, n_samples={planner.get('n_samples')!r}")
+    if planner["proposal"] == "bcd" and 0.0 not in planner["proposal_bw_logits"]:
+        raise ValueError(f"config.yaml: key 'dswm.planner.proposal_bw_logits' must include 0 {merged}; found "
+                         f"{list(planner['proposal_bw_logits'])}")
     return DSWMSettings(world_model=wm,
                         training=_build(TrainConfig, _merge(dswm_cfg["training"], over.get("training")),
                                         "dswm.training"),

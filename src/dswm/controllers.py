@@ -253,8 +253,8 @@ def training_sources(config: Mapping[str, Any]) -> dict[str, str]:
         try:
             identity = cls.training_identity(name=name, config=config)
         except (KeyError, ValueError) as err:
-            raise ConfigError(f"config.yaml: method {name!r} of 'methods.run': its training settings cannot be "
-                              f"resolved ({err})") from err
+            raise ConfigError(f"config.yaml: method {name!r} of 'methods.run': its settings cannot be resolved "
+                              f"({err})") from err
         key = None if identity is None else (f"{cls.__module__}:{cls.__qualname__}", str(identity))
         out[name] = name if key is None else first.setdefault(key, name)
     return out

@@ -8,7 +8,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from dswm import controllers, runconfig
-from dswm.config import ConfigError
+from dswm.config import ConfigError, Scenario
 
 SCHEMA = Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -18,6 +18,7 @@ try:
     runconfig.validate_config(config, runconfig.load_schema(SCHEMA))
     validate(config, schema=str(SCHEMA), set_default=False)
     RUN = runconfig.resolve(config)
+    Scenario.from_dict(RUN["scenario"])   # the constants' cross-key checks (e.g. obs_window < slots_per_day)
     runconfig.check_profile_datasets(RUN)
     METHOD_CLASSES = controllers.check_methods(RUN)
     TRAIN_SOURCE = controllers.training_sources(RUN)
