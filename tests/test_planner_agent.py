@@ -84,3 +84,25 @@ def test_fit_save_load_act(resolved, core, tmp_path, method):
     other = controllers.build(method, config=resolved, seed=3)
     other.load(tmp_path / "model.pt")
     np.testing.assert_array_equal(_play(other, core, 4), a)
+
+
+def test_a_finished_checkpoint_resumes_only_on_the_same_training_data(resolved, core, tmp_path):
+    """Snakemake reruns `train` when the tensor or the scenario changed: the old checkpoint must not be reused."""
+    import torch
+
+    budget = {"transitions": 286, "steps": 3}
+    first = controllers.build("dswm", config=resolved, seed=1)
+    first.fit(core, budget=budget, run_dir=tmp_path / "train")
+    weights = {k: v.clone() for k, v in first.model.state_dict().items()}
+    # the same inputs again: the finished run is resumed, so not one more step changes the weights
+    again = controllers.build("dswm", config=resolved, seed=1)
+    again.fit(core, budget=budget, run_dir=tmp_path / "train")
+    assert all(torch.equal(v, weights[k]) for k, v in again.model.state_dict().items())
+    # other training data in the same run directory: trained anew, not the old weights
+    changed = FleetCore(demand=core.demand.reshape(3, -1, 9, 9).numpy() * 1.5, grid=core.grid, scenario=core.scenario,
+                        dataset="agent-test", day_labels=core.day_labels, init_pos=core.init_pos.numpy())
+    changed.day_ids = core.day_ids
+    fresh = controllers.build("dswm", config=resolved, seed=1)
+    fresh.fit(changed, budget=budget, run_dir=tmp_path / "train")
+    differs = [k for k, v in fresh.model.state_dict().items() if not torch.equal(v, weights[k])]
+    assert "rssm.gru.weight_hh" in differs, differs

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -112,6 +113,15 @@ def training_hash(s: DSWMSettings, budget: Mapping[str, Any]) -> str:
                         "budget": dict(budget)})
 
 
+def training_inputs_hash(core) -> str:
+    """Hash of what a training run reads besides its settings: the training-day demand tensor, its day ids and
+    labels, the grid and the scenario of ``core`` (a FleetCore of TRAINING days)."""
+    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
+    day_ids = np.asarray(getattr(core, "day_ids", range(core.n_days)), dtype=np.int64).tolist()
+    return stable_hash({"demand_sha256": demand, "day_ids": day_ids, "day_labels": list(core.day_labels),
+                        "grid": dataclasses.asdict(core.grid), "scenario": dataclasses.asdict(core.scenario)})
+
+
 class BCDProposal:
     """The "bcd" proposal: the greedy baseline's block-coordinate descent (``dswm.baselines``), pointed at the
     anchored imagined next-slot map instead of the observed one, with the bandwidth logits searched too."""
@@ -187,9 +197,12 @@ class DSWMController(Controller):
         self.model = self._build_model(train_core.grid, train_core.scenario)
         self.model.set_normalizer(replay.demand)
         ckpt = run_dir / "checkpoint.pt"
+        # A checkpoint resumes only the same run: same settings AND the same training data, scenario and days
+        # (a rerun after the tensor or the scenario changed trains from scratch).
         history = train(self.model, replay, steps=int(budget["steps"]), cfg=self.settings.training,
                         seed=self.seed, checkpoint=ckpt, resume=True,
-                        extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(budget)})
+                        extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(budget),
+                               "inputs": training_inputs_hash(train_core)})
         save_training_figure(history, run_dir / "training_diagnostics.png")
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,
