@@ -114,3 +114,41 @@ def test_kappa_aligns_the_training_mean_with_the_reference(tmp_path):
     t = load(tmp_path / "out")
     assert t.demand[t.train_days].mean() == pytest.approx(0.3, rel=1e-5)  # aligned to the reference
     assert t.meta["week"]["lag"] in (2, 3, 4) and [d["label"] for d in t.meta["days"]][:2] == ["d0", "d1"]
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    """A prepared 2+2-day Milan directory (demand.parquet + meta.json)."""
+    root = tmp_path_factory.mktemp("prepared")
+    (root / "raw").mkdir()
+    write_milan_days(root / "raw", np.full((4, 144, 20, 20), 2.0))
+    prepare_dataset(small_milan_config(str(root / "raw" / "*.txt")), "milan", raw=[str(root / "raw")],
+                    out_dir=root / "milan", reference_meta=None)
+    return root / "milan"
+
+
+@pytest.mark.parametrize("corrupt, words", [
+    (lambda text, meta: text[: len(text) // 2], ["not valid JSON"]),
+    (lambda text, meta: json.dumps({k: v for k, v in meta.items() if k != "slots_per_day"}),
+     ["missing key 'slots_per_day'", "an integer"]),
+    (lambda text, meta: json.dumps({**meta, "grid": {**meta["grid"], "rows": "20"}}),
+     ["'grid.rows'", "a number", "'20'"]),
+    (lambda text, meta: json.dumps({**meta, "days": [{"index": 0}] + meta["days"][1:]}),
+     ["days[0] lacks ['label', 'split']"]),
+])
+def test_a_malformed_meta_json_is_named_with_its_key(prepared, tmp_path, corrupt, words):
+    import shutil
+
+    from prep.rawio import PrepError
+
+    out = tmp_path / "milan"
+    shutil.copytree(prepared, out)
+    assert load(out).demand.shape == (4, 144, 20, 20)   # intact: loads
+    text = (out / "meta.json").read_text()
+    (out / "meta.json").write_text(corrupt(text, json.loads(text)))
+    with pytest.raises(PrepError) as err:
+        load(out)
+    msg = str(err.value)
+    assert msg.startswith(str(out / "meta.json")), msg
+    for w in words:
+        assert w in msg, f"{w!r} not in: {msg}"

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import polars as pl
 
 from dswm.atomic import write_text
+from prep.tensor import read_meta
 
 MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
 CROSS_COLUMNS = ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
@@ -122,7 +122,7 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         raise ValueError(f"result files hold profile {wrong['profile'][0]!r} rows, expected {profile!r} only "
                          f"(rerun the evaluate jobs of this profile)")
     summary = summarize(days)
-    sources = {ds: json.loads(Path(p).read_text())["source"] for ds, p in meta_paths.items()}
+    sources = {ds: read_meta(p, keys=("source",))["source"] for ds, p in meta_paths.items()}
     note = provenance(profile, sources)
     d = int(tables_cfg["decimals"])
     id_label, ood_label = tables_cfg["split_labels"]["id"], tables_cfg["split_labels"]["ood"]

@@ -1,7 +1,6 @@
 """Entry points used by the Snakemake rules: demo generation, preparation, and the rules' inputs."""
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -90,7 +89,7 @@ def prepare_dataset(config: dict, dataset: str, *, raw: list[str], out_dir: Path
     if dataset != common.kappa_reference:
         if reference_meta is None:
             raise PrepError(f"{dataset}: kappa needs the meta.json of {common.kappa_reference}")
-        ref = json.loads(Path(reference_meta).read_text())
+        ref = tensor.read_meta(reference_meta, keys=("dataset", "kappa", "train_mean_normalized"))
         if ref.get("dataset") != common.kappa_reference:
             raise PrepError(f"{reference_meta}: expected the meta.json of {common.kappa_reference!r}, found "
                             f"dataset {ref.get('dataset')!r}")

@@ -166,6 +166,49 @@ class DemandTensor:
         return np.asarray(self.meta["eval_days"][split], dtype=np.int64)
 
 
+# The meta.json keys readers rely on, with the form each must have.
+_META_KEYS = {"dataset": (str, "a dataset name"), "source": (str, '"demo" or "raw"'),
+              "slots_per_day": (int, "an integer"), "grid": (dict, "{rows, cols, cell_m}"),
+              "days": (list, "a list of {index, label, split, ...}"), "kappa": ((int, float), "a number"),
+              "train_mean_normalized": ((int, float), "a number"), "eval_days": (dict, "{id: [...], ood: [...]}")}
+_DAY_KEYS = ("index", "label", "split")
+
+
+def read_meta(path: Path | str, *, keys: tuple[str, ...] = tuple(_META_KEYS)) -> dict:
+    """Reads and checks a meta.json written by `write`.
+
+    Args:
+        path: the meta.json; keys: the top-level keys the caller reads (default: every key `load` needs).
+    Raises:
+        PrepError: the file is missing, not JSON, or lacks a key readers use (the message names the key, the
+            form expected and what was found).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PrepError(f"{path}: no such file (run the `prepare` rule)")
+    try:
+        meta = json.loads(path.read_text())
+    except ValueError as exc:
+        raise PrepError(f"{path}: not valid JSON ({exc}); rerun the `prepare` rule") from exc
+    if not isinstance(meta, dict):
+        raise PrepError(f"{path}: expected a JSON object, found {type(meta).__name__}")
+    for key in keys:
+        kind, form = _META_KEYS[key]
+        if key not in meta:
+            raise PrepError(f"{path}: missing key {key!r} (expected {form}); rerun the `prepare` rule")
+        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
+            raise PrepError(f"{path}: key {key!r} expected {form}, found {meta[key]!r}")
+    for key in ("rows", "cols", "cell_m") if "grid" in keys else ():
+        if not isinstance(meta["grid"].get(key), (int, float)):
+            raise PrepError(f"{path}: key 'grid.{key}' expected a number, found {meta['grid'].get(key)!r}")
+    for i, day in enumerate(meta["days"] if "days" in keys else ()):
+        missing = [k for k in _DAY_KEYS if not isinstance(day, dict) or k not in day]
+        if missing:
+            raise PrepError(f"{path}: days[{i}] lacks {missing} (expected {{index, label, split, ...}}), "
+                            f"found {day!r}")
+    return meta
+
+
 def load(dataset_dir: Path | str) -> DemandTensor:
     """Loads a prepared dataset.
 
@@ -181,7 +224,7 @@ def load(dataset_dir: Path | str) -> DemandTensor:
     for p in (meta_path, tensor_path):
         if not p.is_file():
             raise PrepError(f"{p}: no such file (run the `prepare` rule)")
-    meta = json.loads(meta_path.read_text())
+    meta = read_meta(meta_path)
     grid = GridSpec(rows=int(meta["grid"]["rows"]), cols=int(meta["grid"]["cols"]),
                     cell_m=float(meta["grid"]["cell_m"]))
     n_days, n_slots = len(meta["days"]), int(meta["slots_per_day"])
