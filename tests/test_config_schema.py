@@ -114,6 +114,9 @@ def test_raw_source_without_its_files_is_refused(config, tmp_path):
      ["scenario.slots_per_day", "more than obs_window"]),
     (lambda c: c["dswm"]["budgets"]["demo"]["planner"].update(n_elites=65),   # the merged DSWM planner
      ["method 'dswm'", "dswm.planner.n_elites", "dswm.budgets.demo.planner", "n_elites=65, n_samples=64"]),
+    (lambda c: (c["profiles"]["demo"].update(datasets=["milan", "yjmob"]),   # Table III of a dataset not run
+                c["tables"].update(main_dataset="shanghai")),
+     ["'tables.main_dataset' is 'shanghai'", "profiles.demo.datasets: milan, yjmob"]),
 ])
 def test_snakemake_stops_before_any_job_on_a_bad_config(config, tmp_path, mutate, words):
     bad = copy.deepcopy(config)

@@ -114,3 +114,20 @@ def test_a_seed_missing_one_split_is_refused(tmp_path):
     with pytest.raises(ValueError, match="milan/greedy"):
         build_tables(result_paths=paths, meta_paths=metas, specs=BUILTIN, run_order=["static", "greedy", "oracle"],
                      tables_cfg=TABLES, profile="demo", out_dir=tmp_path / "tables")
+
+
+def test_the_main_table_follows_tables_main_dataset(tmp_path):
+    paths, metas = write_results(tmp_path / "results")
+    specs = {m: BUILTIN[m] for m in ("static", "greedy", "oracle")}
+    frames = build_tables(result_paths=paths, meta_paths=metas, specs=specs, run_order=["static", "greedy", "oracle"],
+                          tables_cfg={**TABLES, "main_dataset": "shanghai"}, profile="demo",
+                          out_dir=tmp_path / "tables")
+    assert sorted(frames) == ["cross_dataset", "shanghai_main"]
+    rows = read_csv(tmp_path / "tables" / "shanghai_main.csv")
+    assert {r["method"]: (float(r["weekday_mean"]), float(r["holiday_mean"])) for r in rows} == {
+        "static": (0.40, 0.45), "greedy": (0.60, 0.62), "oracle": (0.70, 0.71)}
+    assert r"\label{tab:shanghai}" in (tmp_path / "tables" / "shanghai_main.tex").read_text()
+    assert not (tmp_path / "tables" / "milan_main.csv").exists()
+    with pytest.raises(ValueError, match=r"'tables.main_dataset' is 'yjmob', which this run does not evaluate"):
+        build_tables(result_paths=paths, meta_paths=metas, specs=specs, run_order=["static", "greedy", "oracle"],
+                     tables_cfg={**TABLES, "main_dataset": "yjmob"}, profile="demo", out_dir=tmp_path / "t2")

@@ -203,7 +203,7 @@ def calibrate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, out: str
 
 def tables_job(*, config: Mapping[str, Any], result_paths: Sequence[str | Path], meta_paths: Mapping[str, str | Path],
                out_dir: str | Path) -> dict:
-    """Build milan_main and cross_dataset (md, tex, csv) from the result files."""
+    """Build <tables.main_dataset>_main and cross_dataset (md, tex, csv) from the result files."""
     resolved = runconfig.resolve(config)
     specs = {m: controllers.spec(m, resolved) for m in resolved["methods"]["run"]}
     return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,

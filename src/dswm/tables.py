@@ -1,7 +1,7 @@
 """The paper's two result tables, assembled from the per-day result files only (never logs or MLflow).
 
-* ``milan_main``  (Table III): per method, the main dataset's weekday (ID) and holiday (OOD) served ratio,
-  mean and standard deviation over seeds, rows grouped by method class.
+* ``<main>_main`` (Table III; ``milan_main`` by default): per method, the weekday (ID) and holiday (OOD) served
+  ratio on ``tables.main_dataset``, mean and standard deviation over seeds, rows grouped by method class.
 * ``cross_dataset`` (Table IV): the same per (method, dataset).
 
 A seed's score on a split is the mean of its days' ``sr_mean``; the table reports mean and sample standard
@@ -102,7 +102,7 @@ def provenance(profile: str, sources: Mapping[str, str]) -> str:
 def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str, str | Path],
                  specs: Mapping[str, Any], run_order: list[str], tables_cfg: Mapping[str, Any],
                  profile: str, out_dir: str | Path) -> dict[str, pl.DataFrame]:
-    """Write milan_main.{md,tex,csv} and cross_dataset.{md,tex,csv} into ``out_dir``.
+    """Write <main_dataset>_main.{md,tex,csv} and cross_dataset.{md,tex,csv} into ``out_dir``.
 
     Args:
         result_paths: every days.parquet of the profile.
@@ -114,7 +114,7 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         out_dir: destination directory.
 
     Returns:
-        {"milan_main": DataFrame, "cross_dataset": DataFrame} with the CSV columns.
+        {"<main_dataset>_main": DataFrame, "cross_dataset": DataFrame} with the CSV columns.
     """
     days = read_results(result_paths)
     wrong = days.filter(pl.col("profile") != profile)
@@ -133,6 +133,9 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
 
     # Table III: the main dataset
     main_ds = tables_cfg["main_dataset"]
+    if main_ds not in meta_paths:
+        raise ValueError(f"config.yaml: key 'tables.main_dataset' is {main_ds!r}, which this run does not evaluate "
+                         f"(datasets: {', '.join(meta_paths)})")
     main = summary.filter(pl.col("dataset") == main_ds)
     by_method = {r["method"]: r for r in main.iter_rows(named=True)}
     main_rows = [{"method": m, "class": classes[m], **{k: by_method[m][k] for k in MAIN_COLUMNS[2:]}}
@@ -151,11 +154,11 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         md.append(f"| {label} | {r['class']} | {wk} | {hd} | {r['n_seeds']} |")
         tex_rows.append(f"{_tex_escape(label)} & {_tex_escape(r['class'])} & {_tex_escape(wk)} & "
                         f"{_tex_escape(hd)} \\\\")
-    tex = _tex_table(caption=f"{title}. {note}.", label="tab:milan", spec="@{}llcc@{}",
+    tex = _tex_table(caption=f"{title}. {note}.", label=f"tab:{main_ds}", spec="@{}llcc@{}",
                      header=f"Method & Class & {id_label} & {ood_label} \\\\", rows=tex_rows)
-    write_text(out_dir / "milan_main.md", "\n".join(md) + "\n")
-    write_text(out_dir / "milan_main.tex", tex)
-    write_text(out_dir / "milan_main.csv", _csv(main_rows, MAIN_COLUMNS))
+    write_text(out_dir / f"{main_ds}_main.md", "\n".join(md) + "\n")
+    write_text(out_dir / f"{main_ds}_main.tex", tex)
+    write_text(out_dir / f"{main_ds}_main.csv", _csv(main_rows, MAIN_COLUMNS))
 
     # Table IV: every dataset
     datasets = [ds for ds in DATASET_LABELS if ds in set(summary["dataset"])]
@@ -182,7 +185,7 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
     write_text(out_dir / "cross_dataset.md", "\n".join(md) + "\n")
     write_text(out_dir / "cross_dataset.tex", tex)
     write_text(out_dir / "cross_dataset.csv", _csv(cross_rows, CROSS_COLUMNS))
-    return {"milan_main": main_df, "cross_dataset": cross_df}
+    return {f"{main_ds}_main": main_df, "cross_dataset": cross_df}
 
 
 def _tex_table(*, caption: str, label: str, spec: str, header: str, rows: list[str]) -> str:

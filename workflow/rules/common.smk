@@ -28,6 +28,11 @@ except ConfigError as err:
 
 PROFILE = RUN["profile"]
 DATASETS = list(RUN["run"]["datasets"])
+MAIN_DATASET = RUN["tables"]["main_dataset"]
+"""The dataset of Table III (`results/tables/<main_dataset>_main.*`); one the profile evaluates."""
+if MAIN_DATASET not in DATASETS:
+    raise WorkflowError(f"config.yaml: key 'tables.main_dataset' is {MAIN_DATASET!r}, which profile {PROFILE!r} "
+                        f"does not run (profiles.{PROFILE}.datasets: {', '.join(DATASETS)})")
 METHODS = list(RUN["methods"]["run"])
 TRAINED = [m for m in METHODS if TRAIN_SOURCE.get(m) == m]
 """The learning methods the `train` rule fits; every other learning method evaluates its source's model."""

@@ -8,9 +8,9 @@ rule tables:
         **meta_files(),
         audit=rules.audit.output.passed,  # no table from a pipeline that fails the leakage audit
     output:
-        milan_md="results/tables/milan_main.md",
-        milan_tex="results/tables/milan_main.tex",
-        milan_csv="results/tables/milan_main.csv",
+        main_md=f"results/tables/{MAIN_DATASET}_main.md",   # Table III of tables.main_dataset (milan)
+        main_tex=f"results/tables/{MAIN_DATASET}_main.tex",
+        main_csv=f"results/tables/{MAIN_DATASET}_main.csv",
         cross_md="results/tables/cross_dataset.md",
         cross_tex="results/tables/cross_dataset.tex",
         cross_csv="results/tables/cross_dataset.csv",
