@@ -62,3 +62,9 @@ def test_a_bracket_that_misses_the_target_names_the_key(make_scenario):
     scn = make_scenario(n_uavs=2, battery_j=1.0e12)
     with pytest.raises(ConfigError, match=r"calibration\.bracket"):
         calibrate(tensor=tensor(), scenario=scn, target=0.74, bracket=(1.0e4, 1.0e5), tolerance=1e-4, max_iter=10)
+
+
+def test_a_bisection_that_does_not_reach_the_tolerance_is_an_error(make_scenario):
+    scn = make_scenario(n_uavs=2, battery_j=1.0e12)
+    with pytest.raises(ConfigError, match=r"'calibration\.max_iter' = 3 .* after 3 bisection steps"):
+        calibrate(tensor=tensor(), scenario=scn, target=0.74, bracket=(1.0, 1000.0), tolerance=1e-4, max_iter=3)

@@ -63,6 +63,8 @@ def calibrate(*, tensor, scenario: Scenario, target: float, bracket: tuple[float
 
     Returns:
         {"demand_intensity", "served_ratio", "target", "iterations", "dataset", "data_source", "train_days"}.
+    Raises:
+        ConfigError: the bracket does not hold the target, or ``max_iter`` steps do not reach the tolerance.
     """
     days = np.asarray(tensor.train_days, dtype=np.int64)
 
@@ -85,6 +87,10 @@ def calibrate(*, tensor, scenario: Scenario, target: float, bracket: tuple[float
             lo = u
         else:
             hi = u
+    if abs(s - target) > tolerance:
+        raise ConfigError(f"config.yaml: keys 'calibration.max_iter' = {max_iter} and 'calibration.tolerance' = "
+                          f"{tolerance:g}: after {it} bisection steps Static serves {s:.6f} at u={u:.6g}, still "
+                          f"{abs(s - target):.2e} from the target {target} (raise max_iter or the tolerance)")
     labels = [d["label"] for d in tensor.meta["days"]]
     return {"demand_intensity": u, "served_ratio": s, "target": target, "iterations": it,
             "dataset": tensor.meta["dataset"], "data_source": tensor.meta["source"],
