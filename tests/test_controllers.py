@@ -171,7 +171,7 @@ def test_the_first_method_in_run_order_is_the_training_source(resolved):
     assert controllers.training_sources(cfg) == {"dswm_wo_unc": "dswm_wo_unc", "dswm_wo_dec": "dswm_wo_dec",
                                                  "dswm": "dswm_wo_unc"}
     cfg["dswm"]["planner"]["lambda_u"] = 0.5  # planning settings never split a training
-    cfg["dswm"]["budgets"]["demo"]["planner"] = {"n_samples": 8}
+    cfg["dswm"]["budgets"]["demo"]["planner"] = {"n_samples": 8, "n_elites": 2}
     assert controllers.training_sources(cfg)["dswm"] == "dswm_wo_unc"
 
 
