@@ -91,18 +91,16 @@ def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMS
     if planner.get("proposal") not in PROPOSALS:
         raise ValueError(f"config.yaml: key 'dswm.planner.proposal' must be one of {PROPOSALS}, "
                          f"found {planner.get('proposal')!r}")
-    # Cross-key checks on the MERGED planner (base section, profile budget, method override).
-    merged = f"(after the 'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides)"
-    if not 1 <= int(planner.get("n_elites", 0)) <= int(planner.get("n_samples", 0)):
-        raise ValueError(f"config.yaml: key 'dswm.planner.n_elites' must lie in [1, n_samples] {merged}; found "
-                         f"n_elites={planner.get('n_elites')!r}, n_samples={planner.get('n_samples')!r}")
-    if planner["proposal"] == "bcd" and 0.0 not in planner["proposal_bw_logits"]:
-        raise ValueError(f"config.yaml: key 'dswm.planner.proposal_bw_logits' must include 0 {merged}; found "
-                         f"{list(planner['proposal_bw_logits'])}")
+    planner_cfg = _build(PlannerConfig, planner, "dswm.planner")
+    # The one cross-key check the schema cannot make: it sees each section, not the merged planner.
+    if not 1 <= planner_cfg.n_elites <= planner_cfg.n_samples:
+        raise ValueError(f"config.yaml: key 'dswm.planner.n_elites' must lie in [1, n_samples] (after the "
+                         f"'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides); found "
+                         f"n_elites={planner_cfg.n_elites}, n_samples={planner_cfg.n_samples}")
     return DSWMSettings(world_model=wm,
                         training=_build(TrainConfig, _merge(dswm_cfg["training"], over.get("training")),
                                         "dswm.training"),
-                        planner=_build(PlannerConfig, planner, "dswm.planner"),
+                        planner=planner_cfg,
                         transitions=int(budget["transitions"]), steps=int(budget["steps"]),
                         device=str(dswm_cfg["device"]))
 
@@ -113,12 +111,12 @@ def training_hash(s: DSWMSettings, budget: Mapping[str, Any]) -> str:
                         "budget": dict(budget)})
 
 
-def training_inputs_hash(core) -> str:
-    """Hash of what a training run reads besides its settings: the training-day demand tensor, its day ids and
-    labels, the grid and the scenario of ``core`` (a FleetCore of TRAINING days)."""
+def training_inputs_hash(core, day_ids: np.ndarray) -> str:
+    """Hash of what a training run reads besides its settings: the training-day demand tensor, its day ids
+    (tensor day of each of ``core``'s days) and labels, the grid and the scenario of ``core`` (a FleetCore of
+    TRAINING days)."""
     demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
-    day_ids = np.asarray(getattr(core, "day_ids", range(core.n_days)), dtype=np.int64).tolist()
-    return stable_hash({"demand_sha256": demand, "day_ids": day_ids, "day_labels": list(core.day_labels),
+    return stable_hash({"demand_sha256": demand, "day_ids": day_ids.tolist(), "day_labels": list(core.day_labels),
                         "grid": dataclasses.asdict(core.grid), "scenario": dataclasses.asdict(core.scenario)})
 
 
@@ -202,7 +200,7 @@ class DSWMController(Controller):
         history = train(self.model, replay, steps=int(budget["steps"]), cfg=self.settings.training,
                         seed=self.seed, checkpoint=ckpt, resume=True,
                         extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(budget),
-                               "inputs": training_inputs_hash(train_core)})
+                               "inputs": training_inputs_hash(train_core, day_ids)})
         save_training_figure(history, run_dir / "training_diagnostics.png")
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,
