@@ -221,10 +221,9 @@ def load(dataset_dir: Path | str) -> DemandTensor:
     """
     dataset_dir = Path(dataset_dir)
     meta_path, tensor_path = dataset_dir / META_FILE, dataset_dir / TENSOR_FILE
-    for p in (meta_path, tensor_path):
-        if not p.is_file():
-            raise PrepError(f"{p}: no such file (run the `prepare` rule)")
     meta = read_meta(meta_path)
+    if not tensor_path.is_file():
+        raise PrepError(f"{tensor_path}: no such file (run the `prepare` rule)")
     grid = GridSpec(rows=int(meta["grid"]["rows"]), cols=int(meta["grid"]["cols"]),
                     cell_m=float(meta["grid"]["cell_m"]))
     n_days, n_slots = len(meta["days"]), int(meta["slots_per_day"])
