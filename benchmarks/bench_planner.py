@@ -68,14 +68,19 @@ def _time_slots(ctl: DSWMController, core: FleetCore, slots: int) -> dict:
             "max_ms": round(max(times), 1), "first_slot_ms": round(first, 1)}
 
 
+def _step_inputs(ctl: DSWMController, core: FleetCore, n: int) -> tuple:
+    """(RSSM state, random actions (n, K, 3), fleet, observed map x_now) of one imagined step of n candidates."""
+    dev = ctl.device
+    state = ctl.model.rssm.initial(n, device=dev)
+    act = torch.rand(n, core.scenario.n_uavs, 3, device=dev) * 2 - 1
+    fleet = type(core.state)(*(t[0].to(dev) for t in core.state)).expand(n)
+    return state, act, fleet, core.demand[0, 0].to(dev)
+
+
 def _breakdown(ctl: DSWMController, core: FleetCore, n: int) -> dict:
     """Milliseconds of each part of ONE imagined step for n candidates."""
     model, dev = ctl.model, ctl.device
-    k = core.scenario.n_uavs
-    state = model.rssm.initial(n, device=dev)
-    act = torch.rand(n, k, 3, device=dev) * 2 - 1
-    fleet = type(core.state)(*(t[0].to(dev) for t in core.state)).expand(n)
-    x_now = core.demand[0, 0].to(dev)
+    state, act, fleet, x_now = _step_inputs(ctl, core, n)
     with torch.inference_mode():
         feat = model.rssm.feat(model.rssm.img_step(state, act.flatten(1), sample=False))
         nxt, _ = fleet_step(fleet, act, core.geom, core.scenario)
@@ -97,11 +102,8 @@ def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> di
     """A floor under per-slot planning: the model's share of ONE imagined step, compiled as the paper profile
     compiles it (RSSM prior, demand ensemble and anchoring, fleet kinematics; no service physics, association,
     continuation, CEM bookkeeping or proposal), times the ``steps`` imagined steps of a slot."""
-    model, dev = ctl.model, ctl.device
-    state = model.rssm.initial(n, device=dev)
-    act = torch.rand(n, core.scenario.n_uavs, 3, device=dev) * 2 - 1
-    fleet = type(core.state)(*(t[0].to(dev) for t in core.state)).expand(n)
-    x_now = core.demand[0, 0].to(dev)
+    model = ctl.model
+    state, act, fleet, x_now = _step_inputs(ctl, core, n)
 
     def model_part(state, fleet, act):
         nxt, _ = fleet_step(fleet, act, core.geom, core.scenario)
