@@ -1,6 +1,8 @@
 """Command line: `python -m audits [--root DIR] [--config config.yaml] [--profile NAME] [--out results/audit]`.
 
-Runs the audit outside Snakemake, writes report.json and report.md, and exits 1 when any check fails.
+Reads the config file, selects the profile, resolves the settings once (dswm.settings.resolve), runs the audit
+outside Snakemake, writes report.json and report.md, and exits 1 when any check fails (2 when the config is
+invalid).
 """
 from __future__ import annotations
 
@@ -14,22 +16,28 @@ from audits.runner import run_audit
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Runs the audit; returns the exit status (0 pass, 1 a check failed)."""
+    """Runs the audit; returns the exit status (0 pass, 1 a check failed, 2 the config is invalid)."""
+    from dswm.config import ConfigError, load_yaml
+    from dswm.settings import resolve
+
     ap = argparse.ArgumentParser(prog="python -m audits", description=__doc__.splitlines()[0])
     ap.add_argument("--root", default=".", help="the workflow's working directory (holds results/)")
     ap.add_argument("--config", default="config.yaml", help="config file the pipeline ran under (YAML or JSON)")
     ap.add_argument("--profile", default=None, help="override the config's profile (as --config profile=NAME)")
     ap.add_argument("--out", default=None, help="report directory (default: <root>/results/audit)")
     args = ap.parse_args(argv)
-    import yaml
 
     root = Path(args.root)
     cfg_path = Path(args.config) if Path(args.config).is_absolute() else root / args.config
-    with open(cfg_path, "r", encoding="utf-8") as fh:
-        config = yaml.safe_load(fh)
-    if args.profile:
-        config["profile"] = args.profile
-    report = run_audit(root=root, config=config, extra_reads=[cfg_path])
+    try:
+        config = load_yaml(cfg_path)
+        if args.profile:
+            config["profile"] = args.profile
+        settings = resolve(config)
+    except ConfigError as exc:
+        sys.stderr.write(f"{exc}\n")
+        return 2
+    report = run_audit(root=root, settings=settings, extra_reads=[cfg_path])
     out = Path(args.out) if args.out else root / "results" / "audit"
     write_report(report, json_path=out / "report.json", md_path=out / "report.md")
     if not report["passed"]:

@@ -1,7 +1,8 @@
-"""What the audit reads, read once and only through the ledger: config, prepared data, raw files, results.
+"""What the audit reads, read once and only through the ledger: prepared data, raw files, results.
 
-The EXPECTED facts (which days are training days, which eval days, which hashes) are derived here from
-config.yaml directly, never from the files under audit; the files are then compared against them.
+The EXPECTED facts (which days are training days, which eval days, which hashes) are derived here from the
+run's typed settings (:class:`dswm.settings.Settings`, resolved once from config.yaml), never from the files
+under audit; the files are then compared against them.
 """
 from __future__ import annotations
 
@@ -9,11 +10,15 @@ import datetime as dt
 import importlib
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from audits.ledger import ReadLedger
+
+if TYPE_CHECKING:
+    from dswm.settings import Settings
+    from prep.config import DatasetConfig
 
 
 class AuditInputError(RuntimeError):
@@ -36,25 +41,21 @@ def label_order(label: str) -> int:
 
 
 class AuditContext:
-    """The audited tree and the configuration it was produced under.
+    """The audited tree and the settings it was produced under.
 
     Args:
-        root: the workflow's working directory (holds results/ and the raw data paths of config).
-        config: the full config mapping (config.yaml plus any --config overrides).
+        root: the workflow's working directory (holds results/ and the raw data paths of the settings).
+        settings: the run's settings (config.yaml plus any --config overrides, resolved once).
         ledger: the read ledger (one is created for `root` when omitted).
     """
 
-    def __init__(self, *, root: Path | str, config: Mapping[str, Any], ledger: ReadLedger | None = None):
-        from dswm.config import Scenario
-        from dswm.runconfig import resolve
-
+    def __init__(self, *, root: Path | str, settings: Settings, ledger: ReadLedger | None = None):
         self.root = Path(root).resolve()
-        self.config = dict(config)
-        self.resolved = resolve(self.config)
-        self.profile = str(self.resolved["profile"])
-        self.datasets = list(self.resolved["run"]["datasets"])
-        self.methods = list(self.resolved["methods"]["run"])
-        self.scenario = Scenario.from_dict(self.config["scenario"])
+        self.settings = settings
+        self.profile = settings.profile
+        self.datasets = list(settings.run.datasets)
+        self.methods = list(settings.methods)
+        self.scenario = settings.scenario
         self.results = self.root / "results"
         self.ledger = ledger or ReadLedger(root=self.root, guarded=[self.root])
         self._meta: dict[str, dict] = {}
@@ -63,51 +64,52 @@ class AuditContext:
         self.cache: dict[str, Any] = {}
         """Values checks share (e.g. statistics recomputed from raw files), keyed by the module that owns them."""
 
-    # ---- configuration-derived expectations -----------------------------------------------------------
-    def split_cfg(self, ds: str) -> dict[str, list]:
+    # ---- settings-derived expectations ----------------------------------------------------------------
+    def section(self, ds: str) -> DatasetConfig:
+        """The typed ``datasets.<ds>`` section."""
+        return getattr(self.settings.datasets, ds)
+
+    def split_cfg(self, ds: str) -> dict[str, list[str]]:
         """{"train": [first, last], "test": [first, last]} of datasets.<ds>.split."""
-        return {k: list(v) for k, v in self.config["datasets"][ds]["split"].items()}
+        split = self.section(ds).split
+        return {"train": list(split.train), "test": list(split.test)}
 
     def calendar(self, ds: str) -> list[tuple[str, str]]:
-        """Expected (label, split) of every tensor day, from config alone: training segment then test."""
+        """Expected (label, split) of every tensor day, from the settings alone: training segment then test."""
         seg = self.split_cfg(ds)
         return [(lab, s) for s in ("train", "test") for lab in label_range(*seg[s])]
 
     def expected_split_of(self, ds: str) -> dict[str, str]:
-        """{label: "train"|"test"} from config."""
+        """{label: "train"|"test"} from the settings."""
         return dict(self.calendar(ds))
 
     def train_index(self, ds: str) -> np.ndarray:
-        """Tensor day indices whose label config puts in the training segment (labels from meta.json)."""
+        """Tensor day indices whose label the settings put in the training segment (labels from meta.json)."""
         want = self.expected_split_of(ds)
         return np.array([d["index"] for d in self.meta(ds)["days"] if want.get(d["label"]) == "train"],
                         dtype=np.int64)
 
     def test_index(self, ds: str) -> np.ndarray:
-        """Tensor day indices whose label config puts in the test segment."""
+        """Tensor day indices whose label the settings put in the test segment."""
         want = self.expected_split_of(ds)
         return np.array([d["index"] for d in self.meta(ds)["days"] if want.get(d["label"]) == "test"],
                         dtype=np.int64)
 
     def seeds(self, ds: str) -> list[int]:
-        return [int(s) for s in self.resolved["run"]["seeds"][ds]]
+        return [int(s) for s in self.settings.seeds(ds)]
 
     def jobs(self) -> list[tuple[str, str, int]]:
         """Every (dataset, method, seed) of the selected profile."""
-        return [(ds, m, s) for ds in self.datasets for m in self.methods for s in self.seeds(ds)]
+        return self.settings.jobs()
 
     def learns(self, method: str) -> bool:
         """Whether the method trains (its class declares `learns = True`)."""
-        from dswm.controllers import controller_class
-
-        return bool(getattr(controller_class(method, self.resolved), "learns", False))
+        return bool(self.settings.methods[method].learns)
 
     @cached_property
     def training_sources(self) -> dict[str, str]:
-        """{learning method: the method whose trained model it evaluates}, from config (dswm.controllers)."""
-        from dswm.controllers import training_sources
-
-        return training_sources(self.resolved)
+        """{learning method: the method whose trained model it evaluates}, from the settings."""
+        return self.settings.training_sources()
 
     def training_source(self, method: str) -> str:
         """The method whose train job fitted the model `method` evaluates (`method` itself unless it shares)."""
@@ -115,11 +117,11 @@ class AuditContext:
 
     @cached_property
     def percentile(self) -> float:
-        return float(self.config["datasets"]["common"]["norm_percentile"])
+        return float(self.settings.datasets.common.norm_percentile)
 
     @cached_property
     def kappa_reference(self) -> str:
-        return str(self.config["datasets"]["common"]["kappa_reference"])
+        return str(self.settings.datasets.common.kappa_reference)
 
     # ---- paths ----------------------------------------------------------------------------------------
     def data_dir(self, ds: str) -> Path:
@@ -162,13 +164,13 @@ class AuditContext:
 
     # ---- raw data -------------------------------------------------------------------------------------
     def raw_candidates(self, ds: str) -> list[Path]:
-        """Files that may be the raw inputs: the demo tree results/raw/<ds>/ or config's raw_files."""
+        """Files that may be the raw inputs: the demo tree results/raw/<ds>/ or datasets.<ds>.raw_files."""
         meta = self.meta(ds)
         if meta.get("source") == "demo":
             base = self.results / "raw" / ds
             return sorted(p for p in base.rglob("*") if p.is_file()) if base.is_dir() else []
         out: list[Path] = []
-        for pat in self.config["datasets"][ds].get("raw_files", []):
+        for pat in self.section(ds).raw_files:
             p = Path(pat) if Path(pat).is_absolute() else self.root / pat
             out.extend(sorted(p.parent.glob(p.name)) if any(c in p.name for c in "*?[") else [p])
         return [p for p in out if p.is_file()]
@@ -207,12 +209,10 @@ class AuditContext:
             prep.tensor.RawTensor (values (D, 144, R, C) float64).
         """
         if ds not in self._raw:
-            from prep.config import dataset_config
-
             paths = self.raw_paths(ds)
             try:
                 module = importlib.import_module(f"prep.{ds}")
-                self._raw[ds] = module.build(dataset_config(self.config, ds), paths)
+                self._raw[ds] = module.build(self.section(ds), paths)
             except (ImportError, ValueError, OSError) as exc:
                 raise AuditInputError(f"{ds}: rebuilding the raw crop from {[self.rel(p) for p in paths][:3]} "
                                       f"failed ({exc})") from exc

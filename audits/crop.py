@@ -1,7 +1,7 @@
 """Statistics family, part 3: the spatial crop of each dataset.
 
-Milan's crop is fixed by config. Shanghai's and YJMob's is the window with the most TRAINING-period records
-(SPEC section 4): the audit counts the raw records per cell of the full grid again (through the `prep`
+Milan's crop is fixed by the settings. Shanghai's and YJMob's is the window with the most TRAINING-period records
+(docs/PROTOCOL.md §4): the audit counts the raw records per cell of the full grid again (through the `prep`
 readers), over the training segment and over all days, finds the densest window with its own code, and
 compares both with the crop recorded in meta.json.
 """
@@ -33,16 +33,16 @@ def _yjmob_totals(ctx: AuditContext) -> tuple[np.ndarray, np.ndarray]:
     """(train, all-days) record counts per cell of the full YJMob grid, row = y - 1, col = x - 1."""
     from prep.yjmob import iter_records
 
-    cfg = ctx.config["datasets"]["yjmob"]
-    n = int(cfg["full_size"])
+    cfg = ctx.section("yjmob")
+    n = int(cfg.full_size)
     cal = ctx.calendar("yjmob")
     train = np.array([int(lab[1:]) for lab, s in cal if s == "train"])
     allowed = {int(lab[1:]) for lab, _ in cal}
     tot = {"train": np.zeros(n * n, dtype=np.int64), "all": np.zeros(n * n, dtype=np.int64)}
     for path in ctx.raw_paths("yjmob"):
-        for df in iter_records(path, full_size=n, masked_value=int(cfg["masked_value"]), n_days=int(cfg["n_days"]),
-                               raw_slots=int(cfg["raw_slots_per_day"]), allowed_days=allowed,
-                               on_out_of_range=cfg["on_out_of_range"], dropped={}):
+        for df in iter_records(path, full_size=n, masked_value=cfg.masked_value, n_days=cfg.n_days,
+                               raw_slots=cfg.raw_slots_per_day, allowed_days=allowed,
+                               on_out_of_range=cfg.on_out_of_range, dropped={}):
             flat = (df["y"].to_numpy().astype(np.int64) - 1) * n + df["x"].to_numpy() - 1
             tot["all"] += np.bincount(flat, minlength=n * n)
             tot["train"] += np.bincount(flat[np.isin(df["d"].to_numpy(), train)], minlength=n * n)
@@ -54,11 +54,11 @@ def _shanghai_totals(ctx: AuditContext) -> tuple[np.ndarray, np.ndarray]:
     from prep.grid import LatLonGrid
     from prep.shanghai import iter_sessions
 
-    cfg = ctx.config["datasets"]["shanghai"]
-    grid = LatLonGrid(lat_min=cfg["lat_min"], lat_max=cfg["lat_max"], lon_min=cfg["lon_min"],
-                      lon_max=cfg["lon_max"], cell_m=cfg["cell_m"])
+    cfg = ctx.section("shanghai")
+    grid = LatLonGrid(lat_min=cfg.lat_min, lat_max=cfg.lat_max, lon_min=cfg.lon_min, lon_max=cfg.lon_max,
+                      cell_m=cfg.cell_m)
     rows, cols = grid.shape
-    seg = {s: [dt.date.fromisoformat(str(v)).toordinal() for v in cfg["split"][s]] for s in ("train", "test")}
+    seg = {s: [dt.date.fromisoformat(v).toordinal() for v in ends] for s, ends in ctx.split_cfg("shanghai").items()}
     tot = {"train": np.zeros(rows * cols, dtype=np.int64), "all": np.zeros(rows * cols, dtype=np.int64)}
     for _, _, s in iter_sessions(ctx.raw_paths("shanghai")):
         lat, lon = s["latitude"].to_numpy(), s["longitude"].to_numpy()
@@ -84,7 +84,7 @@ def check_crop(ctx: AuditContext) -> Check:
             meta = ctx.meta(ds)
             crop, where = meta.get("crop", {}), ctx.rel(ctx.meta_path(ds))
             if crop.get("rule") == "fixed":
-                want = {k: ctx.config["datasets"][ds]["crop"][k] for k in ("first_row", "first_col", "rows", "cols")}
+                want = {k: getattr(ctx.section(ds).crop, k) for k in ("first_row", "first_col", "rows", "cols")}
                 got = {k: crop.get(k) for k in want}
                 if got != want:
                     chk.fail(f"{where}: crop {got}, config datasets.{ds}.crop is {want}")

@@ -4,7 +4,7 @@
   recomputation from the raw TRAINING daily totals.
 * `check_initial_positions`: the initial (and static) UAV positions recorded with every result are the
   demand-weighted K-means of the TRAINING mean map, and differ from the all-days K-means.
-* `check_calibration`: the demand intensity u in config.yaml reproduces the calibration target with Static on
+* `check_calibration`: the demand intensity u of the settings reproduces the calibration target with Static on
   the reference dataset's TRAINING days, and the calibration record names those days only.
 """
 from __future__ import annotations
@@ -59,14 +59,14 @@ def check_week(ctx: AuditContext) -> Check:
         except AuditInputError as exc:
             chk.fail(f"{exc} — the week cannot be verified")
             continue
-        wcfg = ctx.config["datasets"][ds]["week"]
+        wcfg = ctx.section(ds).week
         nums = np.array([int(meta["days"][i]["label"][1:]) for i in r.train])
         totals = r.values[r.train].sum(axis=(1, 2, 3))
-        lag, phases = recover_week(nums, totals, min_lag=wcfg["min_lag"], max_lag=wcfg["max_lag"],
-                                   n_weekend=wcfg["n_weekend_phases"])
+        lag, phases = recover_week(nums, totals, min_lag=wcfg.min_lag, max_lag=wcfg.max_lag,
+                                   n_weekend=wcfg.n_weekend_phases)
         all_nums = np.array([int(d["label"][1:]) for d in meta["days"]])
-        lag_all, phases_all = recover_week(all_nums, r.values.sum(axis=(1, 2, 3)), min_lag=wcfg["min_lag"],
-                                           max_lag=wcfg["max_lag"], n_weekend=wcfg["n_weekend_phases"])
+        lag_all, phases_all = recover_week(all_nums, r.values.sum(axis=(1, 2, 3)), min_lag=wcfg.min_lag,
+                                           max_lag=wcfg.max_lag, n_weekend=wcfg.n_weekend_phases)
         stored = meta["week"]
         got = (int(stored.get("lag", -1)), sorted(int(p) for p in stored.get("pseudo_weekend_phases", [])))
         if got != (lag, phases):
@@ -84,16 +84,16 @@ def check_week(ctx: AuditContext) -> Check:
 
 
 def _grid_and_map(ctx: AuditContext, ds: str, days: np.ndarray):
-    from dswm.env import Grid
+    from dswm.sim.core import grid_of
 
     t = ctx.tensor(ds)
-    grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
+    grid = grid_of(t)
     return grid, t.demand[days].astype(np.float64).mean(axis=(0, 1))
 
 
 def kmeans_positions(ctx: AuditContext, ds: str, days: np.ndarray) -> np.ndarray:
-    """(K, 2) demand-weighted K-means (dswm.env.initial_positions) of the mean map over `days`."""
-    from dswm.env import initial_positions
+    """(K, 2) demand-weighted K-means (dswm.sim.core.initial_positions) of the mean map over `days`."""
+    from dswm.sim.core import initial_positions
 
     grid, mean_map = _grid_and_map(ctx, ds, days)
     return initial_positions(mean_map, grid, ctx.scenario.n_uavs, ctx.scenario.init.kmeans_seed)
@@ -160,15 +160,16 @@ def static_served_ratio(ctx: AuditContext, ds: str, days: np.ndarray, intensity:
     """Mean served ratio of Static (K-means positions held all day) over `days` at demand intensity u."""
     import dataclasses
 
-    from dswm.baselines import StaticController
-    from dswm.controllers import DayContext
-    from dswm.env import FleetCore, Grid
+    from dswm.methods.classical import StaticController
+    from dswm.methods.base import DayContext
+    from dswm.sim.core import FleetCore, grid_of
 
     t = ctx.tensor(ds)
     scenario = dataclasses.replace(ctx.scenario, demand_intensity=float(intensity))
-    grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
+    grid = grid_of(t)
+    # The initial deployment is derived again from the training days that config names, not from meta.json.
     init = kmeans_positions(ctx, ds, ctx.train_index(ds))
-    labels = [d["label"] for d in ctx.meta(ds)["days"]]
+    labels = t.labels
     core = FleetCore(demand=t.demand, grid=grid, scenario=scenario, init_pos=init, dataset=ds, day_labels=labels)
     ctl = StaticController(name="static")
     obs = core.reset(list(days))
@@ -186,8 +187,8 @@ def check_calibration(ctx: AuditContext) -> Check:
     """The configured intensity u was calibrated on the reference dataset's training days."""
     from audits.positions import calibration_record
 
-    cal = ctx.config.get("calibration", {})
-    ds, target = str(cal.get("dataset", "milan")), float(cal.get("target_served_ratio", float("nan")))
+    cal = ctx.settings.calibration
+    ds, target = cal.dataset, float(cal.target_served_ratio)
     chk = Check(id="statistics.calibration", family="statistics",
                 tolerance=f"|served ratio - target| <= {SR_TOL:g}",
                 claim=f"Static at the configured demand intensity u serves the calibration target on the {ds} "

@@ -1,9 +1,9 @@
-"""The hashes and evaluated days every result file must carry, recomputed from config.yaml and meta.json.
+"""The hashes and evaluated days every result file must carry, recomputed from the settings and meta.json.
 
-The observation-spec hash comes from `dswm.env.obs_spec_hash` on the dataset grid of meta.json and the
-scenario of config.yaml, the scenario hash from `dswm.config.Scenario.hash`, the eval-days hash from
-`dswm.evaluation.eval_days_hash` of the days config.yaml picks (cut to the profile's limit), never of the days
-a result file says it evaluated.
+The observation-spec hash comes from `dswm.sim.core.obs_spec_hash` on the dataset grid of meta.json and the
+scenario of the settings, the scenario hash from `dswm.sim.scenario.Scenario.hash`, the eval-days hash from
+`dswm.protocol.evaluation.eval_days_hash` of the days the settings pick (cut to the profile's limit), never of
+the days a result file says it evaluated.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from audits.splits import expected_eval_days
 
 
 def _grid(ctx: AuditContext, ds: str):
-    from dswm.env import Grid
+    from dswm.sim.core import Grid
 
     g = ctx.meta(ds).get("grid", {})
     try:
@@ -25,14 +25,14 @@ def expected_result_days(ctx: AuditContext, ds: str) -> dict[str, list[int]]:
     """{"id": [...], "ood": [...]} tensor days a result file must hold: the configured eval days, the first
     `profiles.<profile>.eval_days.<split>` of each when the profile limits them."""
     days = expected_eval_days(ctx, ds)
-    limits = ctx.resolved["run"].get("eval_days", {})
-    return {k: v[: limits[k]] if limits.get(k) else v for k, v in days.items()}
+    limits = ctx.settings.run.eval_days
+    return {k: v[: getattr(limits, k)] if getattr(limits, k) else v for k, v in days.items()}
 
 
 def expected_hashes(ctx: AuditContext, ds: str) -> dict[str, str]:
     """{"obs_spec_hash", "eval_days_hash", "scenario_hash"} a result file of dataset `ds` must carry."""
-    from dswm.env import obs_spec_hash
-    from dswm.evaluation import eval_days_hash
+    from dswm.protocol.evaluation import eval_days_hash
+    from dswm.sim.core import obs_spec_hash
 
     days = expected_result_days(ctx, ds)
     labels = [d["label"] for d in ctx.meta(ds)["days"]]

@@ -10,12 +10,15 @@ import logging
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING
 
-from audits import crop, derived, protocol, splits, statistics
+from audits import crop, derived, protocol, splits, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
+
+if TYPE_CHECKING:
+    from dswm.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -32,9 +35,9 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     derived.check_calibration,
     protocol.check_hashes,
     protocol.check_result_days,
-    protocol.check_training_days,
-    protocol.check_checkpoints,
-    protocol.check_evaluated_models,
+    training.check_training_days,
+    training.check_checkpoints,
+    training.check_evaluated_models,
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 
@@ -43,7 +46,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     """Runs one check; a check that crashes is a failed check (the audit never passes on an error)."""
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
-    family = {"derived": "statistics", "crop": "statistics"}.get(family, family)
+    family = {"derived": "statistics", "crop": "statistics", "training": "protocol"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback
@@ -54,26 +57,24 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
         return chk
 
 
-def run_audit(*, root: Path | str, config: Mapping[str, Any], extra_reads: list[Path] | None = None) -> dict:
+def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] | None = None) -> dict:
     """Runs the whole audit on the tree under `root`.
 
     Args:
         root: the workflow's working directory (holds results/).
-        config: the configuration the pipeline ran under (config.yaml plus overrides).
+        settings: the settings the pipeline ran under (config.yaml plus overrides, resolved once).
         extra_reads: files read outside the checks (config.yaml) to include in the read-only proof.
     Returns:
         The report (see audits.report.build_report); report["passed"] is the verdict.
     """
-    from dswm.runconfig import config_hash
-
     import torch
 
-    torch.set_num_threads(int(config.get("evaluation", {}).get("torch_threads", 1)))  # as every evaluation job
+    torch.set_num_threads(settings.evaluation.torch_threads)  # as every evaluation job
     root = Path(root).resolve()
     ledger = ReadLedger(root=root, guarded=[root])
     for p in extra_reads or []:
         ledger.track(p)
-    ctx = AuditContext(root=root, config=config, ledger=ledger)
+    ctx = AuditContext(root=root, settings=settings, ledger=ledger)
     checks = []
     with ledger.guard():
         for fn in CHECKS:
@@ -92,7 +93,7 @@ def run_audit(*, root: Path | str, config: Mapping[str, Any], extra_reads: list[
     proof.evidence = {"files_read": len(ro["files"]), "changed": len(ro["changed"])}
     checks.append(proof)
     header = {"profile": ctx.profile, "datasets": ctx.datasets, "methods": ctx.methods,
-              "config_hash": config_hash(ctx.resolved)}
+              "config_hash": settings.hash()}
     return build_report(checks=checks, read_only=ro, header=header)
 
 

@@ -1,4 +1,4 @@
-"""Splits family: the temporal split and the evaluation days, against config.yaml.
+"""Splits family: the temporal split and the evaluation days, against the settings of config.yaml.
 
 * `check_segments`: meta.json's days are exactly the configured training segment then the test segment, each
   day marked with the segment config puts it in; the two are disjoint and every training day precedes every
@@ -107,12 +107,12 @@ def expected_eval_days(ctx: AuditContext, ds: str) -> dict[str, list[int]]:
     weekend = weekend_flags(ctx, ds)
     out = {}
     for name in ("id", "ood"):
-        rule = ctx.config["datasets"][ds]["eval_days"][name]
-        if rule["rule"] == "test_positions":
-            picked = [test[v] for v in rule["values"]]
+        rule = getattr(ctx.section(ds).eval_days, name)
+        if rule.rule == "test_positions":
+            picked = [test[v] for v in rule.values]
         else:
-            want = rule["rule"] == "first_weekend"
-            picked = [lab for lab in test if weekend.get(lab) == want][: int(rule["count"])]
+            want = rule.rule == "first_weekend"
+            picked = [lab for lab in test if weekend.get(lab) == want][: rule.count]
         out[name] = sorted(index[lab] for lab in picked if lab in index)
     return out
 

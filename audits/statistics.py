@@ -35,7 +35,7 @@ class Recomputed:
     """Statistics of one dataset recomputed from its raw files, per day set."""
 
     values: np.ndarray  # (D, 144, R, C) float64 raw units, meta day order
-    train: np.ndarray  # tensor day indices of the training segment (from config)
+    train: np.ndarray  # tensor day indices of the training segment (from the settings)
     test: np.ndarray
     p99: dict[str, float]  # {"train", "all", "test"}
     mean_norm: dict[str, float]  # mean of values / p99_train over {"train", "all", "test"} days

@@ -11,8 +11,9 @@ import numpy as np
 import torch
 
 from _timing import write
-from dswm.allocator import keep_freed_memory
-from dswm.env import FleetCore, Grid, default_scenario, initial_positions, synthetic_demand
+from dswm.pipeline.allocator import keep_freed_memory
+from dswm.sim.core import FleetCore, Grid, initial_positions
+from dswm.sim.env import default_scenario, synthetic_demand
 
 
 def main() -> None:
@@ -21,7 +22,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    keep_freed_memory()   # as every job does (dswm.jobs)
+    keep_freed_memory()   # as every job does (dswm.pipeline.jobs)
     scenario = default_scenario()
     grid = Grid(rows=20, cols=20, cell_m=235.0)
     demand = synthetic_demand(days=8, rows=20, cols=20, slots=scenario.slots_per_day)

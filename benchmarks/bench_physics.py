@@ -10,8 +10,8 @@ import argparse
 import torch
 
 from _timing import median_ms, write
-from dswm.allocator import keep_freed_memory
-from dswm.physics import ServiceParams, associate, path_loss_db, served_ratio
+from dswm.pipeline.allocator import keep_freed_memory
+from dswm.sim.physics import ServiceParams, associate, path_loss_db, served_ratio
 
 
 def served_ratio_all_pairs(demand, pos, available, cells, *, params):
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    keep_freed_memory()   # as every job does (dswm.jobs)
+    keep_freed_memory()   # as every job does (dswm.pipeline.jobs)
     gen = torch.Generator().manual_seed(0)
     side, cell = args.side, 235.0
     r, c = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")

@@ -28,23 +28,25 @@ import torch
 import yaml
 
 from _timing import RESULTS, median_ms, write
-from dswm.allocator import keep_freed_memory
-from dswm.agent import DSWMController, settings
-from dswm.config import Scenario
-from dswm.controllers import DayContext
-from dswm.core import FleetCore, Grid, initial_positions
-from dswm.env import synthetic_demand
-from dswm.fleet import available, fleet_step
-from dswm.physics import service
-from dswm.planner import anchor
-from dswm.training import collect, make_optimizer
+from dswm.pipeline.allocator import keep_freed_memory
+from dswm.methods.dswm.agent import DSWMController
+from dswm.methods.dswm.settings import resolve as dswm_settings
+from dswm.sim.scenario import Scenario
+from dswm.methods.base import DayContext
+from dswm.sim.core import FleetCore, Grid, initial_positions
+from dswm.sim.env import synthetic_demand
+from dswm.sim.fleet import available, fleet_step
+from dswm.sim.physics import service
+from dswm.methods.dswm.planner import anchor
+from dswm.methods.dswm.training import collect, make_optimizer
 
 
 def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, device: str) -> DSWMController:
     c = copy.deepcopy(cfg["dswm"])
     c["device"] = device
     c["budgets"][profile]["planner"] = {**(c["budgets"][profile].get("planner") or {}), **planner_over}
-    ctl = DSWMController(name="dswm", seed=0, device=device, settings=settings(c, method="dswm", profile=profile))
+    ctl = DSWMController(name="dswm", seed=0, device=device,
+                         options=dswm_settings(c, method="dswm", profile=profile))
     ctl.model = ctl._build_model(core.grid, core.scenario)
     ctl.model.set_normalizer(torch.as_tensor(core.demand[:1].cpu().numpy()))
     ctl.model.eval()
@@ -118,9 +120,9 @@ def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> di
 
 
 def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
-    s = settings(cfg["dswm"], method="dswm", profile="demo")
+    s = dswm_settings(cfg["dswm"], method="dswm", profile="demo")
     rep = collect(core, n_transitions=2 * 143, cfg=s.training, seed=0, day_ids=np.arange(core.n_days))
-    ctl = DSWMController(name="dswm", seed=0, device=device, settings=s)
+    ctl = DSWMController(name="dswm", seed=0, device=device, options=s)
     model = ctl._build_model(core.grid, core.scenario)
     model.set_normalizer(rep.demand)
     opt = make_optimizer(model, s.training)
@@ -176,7 +178,7 @@ def main() -> None:
     ap.add_argument("--train-steps", type=int, default=20)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    keep_freed_memory()   # as every job does (dswm.jobs)
+    keep_freed_memory()   # as every job does (dswm.pipeline.jobs)
     load0 = __import__("os").getloadavg()[0]
     cfg = yaml.safe_load((RESULTS.parents[1] / "config.yaml").read_text())
     scenario = Scenario.from_dict(cfg["scenario"])
@@ -202,7 +204,7 @@ def main() -> None:
         print(name, per_slot[name], flush=True)
     ctl = _controller(cfg, "paper", production, core, args.device)
     result = {"device": args.device, "threads": args.threads, "load_avg_1min_start": load0,
-              "grid": [20, 20], "K": scenario.n_uavs, "E": ctl.settings.wm_config(scenario.n_uavs).ensemble,
+              "grid": [20, 20], "K": scenario.n_uavs, "E": ctl.settings.world_model.ensemble,
               "per_slot": per_slot, "imagined_step_breakdown_ms": _breakdown(ctl, core, 512),
               "model_only_floor_compiled": _model_floor(ctl, core, 512,
                                                         production["iterations"] * production["horizon"]),

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dswm.config import load_scenario
+from dswm.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -35,3 +35,19 @@ def make_scenario(scenario):
     def make(**changes):
         return dataclasses.replace(scenario, **changes)
     return make
+
+
+def dataset_of(config: dict, dataset: str):
+    """The typed ``datasets.<dataset>`` section of a config mapping."""
+    from prep.config import dataset_from_plain
+
+    return dataset_from_plain(dataset, config["datasets"][dataset])
+
+
+def prepare_from_config(config: dict, dataset: str, **kwargs):
+    """``prep.pipeline.prepare_dataset`` with the typed sections of a config mapping."""
+    from prep.config import common_from_plain
+    from prep.pipeline import prepare_dataset
+
+    return prepare_dataset(dataset_of(config, dataset), common_from_plain(config["datasets"]["common"]), dataset,
+                           **kwargs)

@@ -1,6 +1,6 @@
 import platform
 
-from dswm.allocator import keep_freed_memory
+from dswm.pipeline.allocator import keep_freed_memory
 
 
 def test_the_allocator_keeps_freed_memory_on_glibc_and_is_left_alone_elsewhere():

@@ -1,13 +1,12 @@
 """Mutation tests of the leakage audit: a clean tree passes; each leak turns its own check red.
 
-The clean tree (audits.testing.build_clean_tree) holds raw files in the published Milan and YJMob formats,
+The clean tree (audit_fixtures.build_clean_tree) holds raw files in the published Milan and YJMob formats,
 tensors prepared by the real `prep` functions, result files, a training manifest and a checkpoint. Each test
 copies it, plants one leak the way a faulty pipeline would, and asserts that the check for that leak fails
 with a message naming the file and the leak.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import json
@@ -19,10 +18,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from audits import crop, derived, protocol, splits, statistics
+from audit_fixtures import T0, build_clean_tree, model_record, prepare, write_results, write_training
+from audits import crop, derived, protocol, splits, statistics, training
 from audits.__main__ import main
 from audits.context import AuditContext
-from audits.testing import T0, build_clean_tree, model_record, prepare, write_results, write_training
+from dswm.settings import Settings
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -44,15 +44,15 @@ def clean(tmp_path_factory):
 
 @pytest.fixture
 def tree(clean, tmp_path):
-    """A private copy of the clean tree (file times kept) and its config."""
-    root, cfg = clean
+    """A private copy of the clean tree (file times kept) and its settings."""
+    root, settings = clean
     dst = tmp_path / "tree"
     shutil.copytree(root, dst)
-    return dst, copy.deepcopy(cfg)
+    return dst, settings
 
 
-def run(root: Path, cfg: dict, check):
-    return check(AuditContext(root=root, config=cfg))
+def run(root: Path, settings: Settings, check):
+    return check(AuditContext(root=root, settings=settings))
 
 
 def tree_hashes(root: Path) -> dict[str, tuple[str, int]]:
@@ -92,53 +92,53 @@ def test_clean_tree_passes_and_nothing_changes(clean, tmp_path):
 
 
 def test_test_day_moved_into_training(tree):
-    root, cfg = tree
+    root, settings = tree
     meta_path = root / "results/data/milan/meta.json"
     meta = json.loads(meta_path.read_text())
     first_test = next(d for d in meta["days"] if d["split"] == "test")
     first_test["split"] = "train"
     meta_path.write_text(json.dumps(meta))
-    chk = run(root, cfg, splits.check_segments)
+    chk = run(root, settings, splits.check_segments)
     assert not chk.passed
     assert any("results/data/milan/meta.json" in m and "2013-12-21" in m and "a test day moved into training" in m
                for m in chk.failures), chk.failures
 
 
 def test_p99_computed_on_all_days(tree, monkeypatch):
-    root, cfg = tree
+    root, settings = tree
     import prep.stats
 
     real = prep.stats.percentile
     monkeypatch.setattr(prep.stats, "percentile", lambda v, idx, q: real(v, np.arange(v.shape[0]), q))
-    prepare(cfg, root, only="milan")
-    chk = run(root, cfg, statistics.check_p99)
+    prepare(settings, root, only="milan")
+    chk = run(root, settings, statistics.check_p99)
     assert any("results/data/milan/meta.json" in m and "p99 computed on all days" in m for m in chk.failures), \
         chk.failures
-    tensor = run(root, cfg, statistics.check_tensor)
+    tensor = run(root, settings, statistics.check_tensor)
     assert any("results/data/milan/demand.parquet" in m and "p99 over all days" in m for m in tensor.failures)
     assert all("yjmob" not in m for m in chk.failures + tensor.failures)
 
 
 def test_kappa_from_test_segment(tree, monkeypatch):
-    root, cfg = tree
+    root, settings = tree
     import prep.stats
 
     real = prep.stats.mean_of
     test_idx = np.arange(10, 16)  # YJMob days d10..d15 are the fixture's test segment
     monkeypatch.setattr(prep.stats, "mean_of", lambda v, idx: real(v, test_idx))
-    prepare(cfg, root, only="yjmob")
-    chk = run(root, cfg, statistics.check_kappa)
+    prepare(settings, root, only="yjmob")
+    chk = run(root, settings, statistics.check_kappa)
     assert any("results/data/yjmob/meta.json" in m and "kappa from the test segment" in m for m in chk.failures), \
         chk.failures
     assert all("milan" not in m.split(":")[0] for m in chk.failures)
 
 
 def test_method_evaluated_on_other_days(tree):
-    root, cfg = tree
+    root, settings = tree
     labels = [d["label"] for d in json.loads((root / "results/data/milan/meta.json").read_text())["days"]]
     other = labels.index("2013-12-26")  # a test day that is neither an ID nor an OOD day
-    write_results(cfg, root, "milan", "greedy", 0, days_override={"id": [4, 5, other], "ood": [7, 8]})
-    chk = run(root, cfg, protocol.check_result_days)
+    write_results(settings, root, "milan", "greedy", 0, days_override={"id": [4, 5, other], "ood": [7, 8]})
+    chk = run(root, settings, protocol.check_result_days)
     assert len(chk.failures) == 1
     msg = chk.failures[0]
     assert "results/milan/greedy/seed0/days.parquet" in msg and "greedy evaluated on other days" in msg
@@ -146,14 +146,12 @@ def test_method_evaluated_on_other_days(tree):
 
 
 def test_different_observation_spec_for_one_method(tree):
-    root, cfg = tree
-    from dswm.config import Scenario
-    from dswm.env import Grid, obs_spec_hash
+    root, settings = tree
+    from dswm.sim.core import Grid, obs_spec_hash
 
-    scenario = Scenario.from_dict(cfg["scenario"])
-    other = obs_spec_hash(Grid(rows=5, cols=5, cell_m=500.0), dataclasses.replace(scenario, obs_window=4))
-    write_results(cfg, root, "yjmob", "greedy", 0, obs_hash=other)
-    chk = run(root, cfg, protocol.check_hashes)
+    other = obs_spec_hash(Grid(rows=5, cols=5, cell_m=500.0), dataclasses.replace(settings.scenario, obs_window=4))
+    write_results(settings, root, "yjmob", "greedy", 0, obs_hash=other)
+    chk = run(root, settings, protocol.check_hashes)
     assert len(chk.failures) == 1
     msg = chk.failures[0]
     assert "results/yjmob/greedy/seed0/days.parquet" in msg and "a different observation spec" in msg
@@ -161,9 +159,9 @@ def test_different_observation_spec_for_one_method(tree):
 
 
 def test_replay_buffer_holds_a_test_day(tree):
-    root, cfg = tree
-    write_training(cfg, root, "milan", "dswm", 0, days=[0, 1, 2, 3, 5, 1])  # index 5 = 2013-12-22, a test day
-    chk = run(root, cfg, protocol.check_training_days)
+    root, settings = tree
+    write_training(root, "milan", "dswm", 0, days=[0, 1, 2, 3, 5, 1])  # index 5 = 2013-12-22, a test day
+    chk = run(root, settings, training.check_training_days)
     assert len(chk.failures) == 1  # once for the train job, not once per method that evaluates its model
     msg = chk.failures[0]
     assert "results/milan/dswm/seed0/train_manifest.json" in msg and "holds a test day" in msg
@@ -172,16 +170,16 @@ def test_replay_buffer_holds_a_test_day(tree):
 
 
 def test_a_method_that_shares_a_training_is_verified_through_its_source_manifest(clean):
-    root, cfg = clean
+    root, settings = clean
     assert not (root / "results/milan/dswm_wo_unc/seed0/train_manifest.json").exists()
-    days = run(root, cfg, protocol.check_training_days)
+    days = run(root, settings, training.check_training_days)
     assert days.passed, days.failures
     assert days.evidence["learning_jobs"] == {f"{ds}/{m}/seed0": f"results/{ds}/dswm/seed0/train_manifest.json"
                                               for ds in ("milan", "yjmob") for m in ("dswm", "dswm_wo_unc")}
     assert days.evidence["yjmob/dswm/seed0"]["evaluated_by"] == ["dswm", "dswm_wo_unc"]
-    ckpt = run(root, cfg, protocol.check_checkpoints)
+    ckpt = run(root, settings, training.check_checkpoints)
     assert ckpt.passed and sorted(ckpt.evidence) == ["milan/dswm/seed0", "yjmob/dswm/seed0"]
-    models = run(root, cfg, protocol.check_evaluated_models)
+    models = run(root, settings, training.check_evaluated_models)
     assert models.passed, models.failures
     model = root / "results/milan/dswm/seed0/model.pt"
     assert models.evidence["milan/dswm_wo_unc/seed0"] == {
@@ -190,13 +188,13 @@ def test_a_method_that_shares_a_training_is_verified_through_its_source_manifest
 
 
 def test_evaluation_that_loaded_a_model_its_source_did_not_train(tree):
-    root, cfg = tree
+    root, settings = tree
     stray = root / "results/milan/dswm_wo_unc/seed0/model.pt"  # a model trained for dswm_wo_unc after all
     stray.write_bytes(b"fixture model dswm_wo_unc")
     rec = {"method": "dswm_wo_unc", "train_source": "dswm", "model": "results/milan/dswm_wo_unc/seed0/model.pt",
            "model_sha256": sha(stray), "train_manifest": "results/milan/dswm/seed0/train_manifest.json"}
-    write_results(cfg, root, "milan", "dswm_wo_unc", 0, record=rec)
-    chk = run(root, cfg, protocol.check_evaluated_models)
+    write_results(settings, root, "milan", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, settings, training.check_evaluated_models)
     want = sha(root / "results/milan/dswm/seed0/model.pt")
     where = "results/milan/dswm_wo_unc/seed0/days.parquet"
     assert chk.failures == [
@@ -210,12 +208,12 @@ def test_evaluation_that_loaded_a_model_its_source_did_not_train(tree):
 
 
 def test_evaluation_record_naming_the_source_model_with_another_hash(tree):
-    root, cfg = tree
+    root, settings = tree
     other = hashlib.sha256(b"a model loaded before dswm's training ended").hexdigest()
     rec = {"method": "dswm_wo_unc", "train_source": "dswm", "model": "results/yjmob/dswm/seed0/model.pt",
            "model_sha256": other, "train_manifest": "results/yjmob/dswm/seed0/train_manifest.json"}
-    write_results(cfg, root, "yjmob", "dswm_wo_unc", 0, record=rec)
-    chk = run(root, cfg, protocol.check_evaluated_models)
+    write_results(settings, root, "yjmob", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, settings, training.check_evaluated_models)
     assert len(chk.failures) == 1
     msg = chk.failures[0]
     assert msg.startswith("results/yjmob/dswm_wo_unc/seed0/days.parquet: the evaluation loaded "
@@ -224,42 +222,42 @@ def test_evaluation_record_naming_the_source_model_with_another_hash(tree):
 
 
 def test_evaluation_that_claims_another_training_source(tree):
-    root, cfg = tree
-    rec = dict(model_record(cfg, root, "milan", "dswm_wo_unc", 0), train_source="dswm_wo_unc")
-    write_results(cfg, root, "milan", "dswm_wo_unc", 0, record=rec)
-    chk = run(root, cfg, protocol.check_evaluated_models)
+    root, settings = tree
+    rec = dict(model_record(settings, root, "milan", "dswm_wo_unc", 0), train_source="dswm_wo_unc")
+    write_results(settings, root, "milan", "dswm_wo_unc", 0, record=rec)
+    chk = run(root, settings, training.check_evaluated_models)
     assert chk.failures == ["results/milan/dswm_wo_unc/seed0/days.parquet: train_source = 'dswm_wo_unc', expected "
                             "'dswm' (the training source config.yaml gives dswm_wo_unc)"]
     assert rec["model"] == "results/milan/dswm/seed0/model.pt"
 
 
 def test_learning_result_without_a_model_record(tree):
-    root, cfg = tree
+    root, settings = tree
     path = root / "results/yjmob/dswm/seed0/days.parquet"
     pl.read_parquet(path).write_parquet(path)  # what the evaluate job wrote before it recorded the model
     os.utime(path, (T0 + 20, T0 + 20))
-    chk = run(root, cfg, protocol.check_evaluated_models)
+    chk = run(root, settings, training.check_evaluated_models)
     assert len(chk.failures) == 1
     assert chk.failures[0].startswith("results/yjmob/dswm/seed0/days.parquet: no dswm.evaluated_model record")
     assert "re-run the evaluate job of yjmob/dswm/seed0" in chk.failures[0]
 
 
 def test_sharing_method_evaluated_before_its_source_training_ended(tree):
-    root, cfg = tree
+    root, settings = tree
     result = root / "results/milan/dswm_wo_unc/seed0/days.parquet"
     os.utime(result, (T0 + 2, T0 + 2))  # before dswm's manifest closed (T0 + 10)
-    chk = run(root, cfg, protocol.check_checkpoints)
+    chk = run(root, settings, training.check_checkpoints)
     assert chk.failures == ["results/milan/dswm_wo_unc/seed0/days.parquet: written before its training manifest "
                             "results/milan/dswm/seed0/train_manifest.json closed — the evaluation did not use the "
                             "final checkpoint"]
 
 
 def test_checkpoint_written_after_training_ended(tree):
-    root, cfg = tree
+    root, settings = tree
     ckpt = root / "results/yjmob/dswm/seed0/train/checkpoint.pt"
     ckpt.write_bytes(b"rewritten during evaluation")
     os.utime(ckpt, (T0 + 15, T0 + 15))  # after the manifest (T0 + 10), before the results (T0 + 20)
-    chk = run(root, cfg, protocol.check_checkpoints)
+    chk = run(root, settings, training.check_checkpoints)
     assert any("results/yjmob/dswm/seed0/train/checkpoint.pt" in m and "after" in m for m in chk.failures), chk.failures
     assert len([m for m in chk.failures if "milan" in m]) == 0
 
@@ -276,8 +274,8 @@ def rewrite_keeping_time(path: Path, data: bytes) -> None:
 
 
 def test_clean_checkpoints_are_proven_by_their_hashes(clean):
-    root, cfg = clean
-    chk = run(root, cfg, protocol.check_checkpoints)
+    root, settings = clean
+    chk = run(root, settings, training.check_checkpoints)
     assert chk.passed, chk.failures
     run_dir = root / "results/milan/dswm/seed0"
     ev = chk.evidence["milan/dswm/seed0"]
@@ -294,23 +292,23 @@ def test_clean_checkpoints_are_proven_by_their_hashes(clean):
     ("results/milan/dswm/seed0", "model.pt", "model_sha256", "the model file was"),
 ])
 def test_trained_file_rewritten_with_its_file_time_restored(tree, run_dir, rel, key, what):
-    root, cfg = tree
+    root, settings = tree
     path = root / run_dir / rel
     before, mtime = sha(path), path.stat().st_mtime
     rewrite_keeping_time(path, b"rewritten during evaluation")
     assert path.stat().st_mtime == mtime  # the file times alone no longer show the rewrite
-    chk = run(root, cfg, protocol.check_checkpoints)
+    chk = run(root, settings, training.check_checkpoints)
     assert chk.failures == [
         f"{run_dir}/{rel}: SHA-256 is {sha(path)}, {run_dir}/train_manifest.json recorded {key} = {before} — "
         f"{what} rewritten after training ended"]
 
 
 def test_training_input_changed_after_training(tree):
-    root, cfg = tree
+    root, settings = tree
     meta = root / "results/data/yjmob/meta.json"
     before = sha(meta)
     meta.write_text(json.dumps(json.loads(meta.read_text()), indent=4))  # same content, other bytes
-    chk = run(root, cfg, protocol.check_checkpoints)
+    chk = run(root, settings, training.check_checkpoints)
     assert len(chk.failures) == 1
     msg = chk.failures[0]
     assert msg.startswith(f"results/data/yjmob/meta.json: SHA-256 is {sha(meta)}, "
@@ -320,7 +318,7 @@ def test_training_input_changed_after_training(tree):
 
 @pytest.mark.parametrize("key", ["checkpoint_sha256", "data_files_read"])
 def test_manifest_that_predates_hashing(tree, key):
-    root, cfg = tree
+    root, settings = tree
     path = root / "results/milan/dswm/seed0/train_manifest.json"
     man = json.loads(path.read_text())
     if key == "data_files_read":
@@ -329,7 +327,7 @@ def test_manifest_that_predates_hashing(tree, key):
         del man[key]
     path.write_text(json.dumps(man))
     os.utime(path, (T0 + 10, T0 + 10))
-    chk = run(root, cfg, protocol.check_checkpoints)
+    chk = run(root, settings, training.check_checkpoints)
     assert len(chk.failures) == 1
     msg = chk.failures[0]
     assert msg.startswith("results/milan/dswm/seed0/train_manifest.json: ")
@@ -338,36 +336,35 @@ def test_manifest_that_predates_hashing(tree, key):
 
 
 def test_initial_positions_from_all_days(tree):
-    root, cfg = tree
-    from dswm.config import Scenario
-    from dswm.env import Grid, initial_positions
+    root, settings = tree
+    from dswm.sim.core import Grid, initial_positions
     from prep.tensor import load
 
-    scenario = Scenario.from_dict(cfg["scenario"])
+    scenario = settings.scenario
     t = load(root / "results/data/milan")
     grid = Grid(rows=5, cols=5, cell_m=235.0)
     train = initial_positions(t.demand[t.train_days].mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
     alld = initial_positions(t.demand.mean(axis=(0, 1)), grid, 16, scenario.init.kmeans_seed)
     assert np.abs(alld - train).max() > 50.0  # the fixture's test days move demand east
-    write_results(cfg, root, "milan", "static", 0, init_pos=alld)
-    chk = run(root, cfg, derived.check_initial_positions)
+    write_results(settings, root, "milan", "static", 0, init_pos=alld)
+    chk = run(root, settings, derived.check_initial_positions)
     assert any("results/milan/static/seed0/trajectory.npz:id_pos" in m and "ALL-DAYS" in m for m in chk.failures), \
         chk.failures
 
 
 def test_calibration_record_with_test_days(tree):
-    root, cfg = tree
+    root, settings = tree
     rec_path = root / "results/calibration/demand_intensity.json"
     rec = json.loads(rec_path.read_text())
     rec["train_days"] = rec["train_days"] + ["2013-12-21"]
     rec_path.write_text(json.dumps(rec))
-    chk = run(root, cfg, derived.check_calibration)
+    chk = run(root, settings, derived.check_calibration)
     assert any("results/calibration/demand_intensity.json" in m and "non-training day(s) ['2013-12-21']" in m for m in chk.failures), chk.failures
 
 
 def test_full_audit_exits_nonzero_and_names_the_leak(tree, tmp_path):
-    root, cfg = tree
-    write_training(cfg, root, "yjmob", "dswm", 0, days=[0, 1, 12])
+    root, settings = tree
+    write_training(root, "yjmob", "dswm", 0, days=[0, 1, 12])
     out = tmp_path / "report"
     assert main(["--root", str(root), "--config", "config.json", "--out", str(out)]) == 1
     report = json.loads((out / "report.json").read_text())
@@ -378,23 +375,23 @@ def test_full_audit_exits_nonzero_and_names_the_leak(tree, tmp_path):
 
 
 def test_intensity_calibrated_on_test_days(tree):
-    root, cfg = tree
-    from dswm.calibration import static_score
-    from dswm.config import Scenario
+    root, settings = tree
+    from dswm.protocol.calibration import static_score
     from prep.tensor import load
 
     t = load(root / "results/data/milan")
-    test_score = static_score(t, Scenario.from_dict(cfg["scenario"]), t.test_days)
-    train_score = cfg["calibration"]["target_served_ratio"]
+    test_score = static_score(t, settings.scenario, t.test_days)
+    train_score = settings.calibration.target_served_ratio
     assert abs(test_score - train_score) > 0.02  # the fixture's busier test days are served less
-    cfg["calibration"]["target_served_ratio"] = test_score  # config's u now reaches the target on TEST days
-    chk = run(root, cfg, derived.check_calibration)
+    calibration = dataclasses.replace(settings.calibration, target_served_ratio=test_score)
+    settings = dataclasses.replace(settings, calibration=calibration)  # u now reaches the target on TEST days
+    chk = run(root, settings, derived.check_calibration)
     assert any("config.yaml: scenario.demand_intensity" in m and "u calibrated on test days" in m
                for m in chk.failures), chk.failures
 
 
 def test_crop_chosen_on_all_days(tree):
-    root, cfg = tree
+    root, settings = tree
     raw = pl.read_csv(root / "results/raw/yjmob/demo/yjmob100k-dataset1.csv.gz").filter(pl.col("x") != 999)
     counts = np.zeros((12, 12))
     np.add.at(counts, (raw["y"].to_numpy() - 1, raw["x"].to_numpy() - 1), 1)
@@ -405,7 +402,7 @@ def test_crop_chosen_on_all_days(tree):
     assert (meta["crop"]["first_y"] - 1, meta["crop"]["first_x"] - 1) != (r_all, c_all)
     meta["crop"].update(first_x=c_all + 1, first_y=r_all + 1)
     meta_path.write_text(json.dumps(meta))
-    chk = run(root, cfg, crop.check_crop)
+    chk = run(root, settings, crop.check_crop)
     assert len(chk.failures) == 1
     assert "results/data/yjmob/meta.json" in chk.failures[0] and "crop chosen with test-period records" in \
         chk.failures[0], chk.failures

@@ -3,11 +3,12 @@ import numpy as np
 import pytest
 import torch
 
-from dswm.baselines import GreedyController, OracleController, StaticController, lattice_offsets
-from dswm.controllers import DayContext
-from dswm.core import Grid, build_observation
-from dswm.fleet import ACTIVE, CHARGING, FleetState
-from dswm.physics import ServiceParams, served_ratio
+from dswm.methods.classical import GreedyController, OracleController, StaticController
+from dswm.methods.search import SearchSettings, lattice_offsets
+from dswm.methods.base import DayContext
+from dswm.sim.core import Grid, build_observation
+from dswm.sim.fleet import ACTIVE, CHARGING, FleetState
+from dswm.sim.physics import ServiceParams, served_ratio
 
 GRID = Grid(rows=12, cols=12, cell_m=235.0)  # 2820 m square
 
@@ -85,7 +86,7 @@ def test_greedy_reaches_the_plan_of_a_one_candidate_at_a_time_search(make_scenar
     rng = np.random.default_rng(4)
     x = rng.gamma(0.5, 1.0, size=(GRID.rows, GRID.cols)).astype(np.float32)
     pos = np.array([[300.0, 400.0], [1500.0, 2500.0], [2600.0, 900.0]])
-    ctrl = GreedyController(name="greedy", sweeps=2, lattice=5)
+    ctrl = GreedyController(name="greedy", options=SearchSettings(sweeps=2, lattice=5, refine=0, bw_logits=()))
     ctrl.reset(ctx(scn, pos))
     action = ctrl.act(observe(scn, pos, x))
     expected, expected_sr = reference_bcd(scn, pos, x, sweeps=2, lattice=5)
@@ -103,9 +104,9 @@ def test_greedy_heads_for_the_current_hotspot_and_the_oracle_for_the_next_one(ma
     start = [[1410.0, 1410.0]]  # centre of the area
     west, east = hotspot(6, 0), hotspot(6, 11)  # row 6, westmost / eastmost column
     day = np.stack([west, east] + [east] * (scn.slots_per_day - 2))
-    greedy = GreedyController(name="greedy", sweeps=2, lattice=7)
+    greedy = GreedyController(name="greedy", options=SearchSettings(sweeps=2, lattice=7, refine=0, bw_logits=()))
     greedy.reset(ctx(scn, start))
-    oracle = OracleController(name="oracle", sweeps=2, lattice=7, refine=1, bw_logits=[0.0, 1.0])
+    oracle = OracleController(name="oracle", options=SearchSettings(sweeps=2, lattice=7, refine=1, bw_logits=[0.0, 1.0]))
     oracle.reset(ctx(scn, start, demand=day))
     obs = observe(scn, start, west, slot=0)  # at slot 0 the next map x_1 is the eastern hotspot
     dx_greedy = greedy.act(obs)[0, 0] * scn.d_max_m
@@ -117,11 +118,11 @@ def test_greedy_heads_for_the_current_hotspot_and_the_oracle_for_the_next_one(ma
 
 def test_oracle_refuses_a_day_without_its_true_demand(make_scenario):
     scn = make_scenario(n_uavs=1)
-    oracle = OracleController(name="oracle", sweeps=1, lattice=3, refine=0, bw_logits=[0.0])
+    oracle = OracleController(name="oracle", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=[0.0]))
     with pytest.raises(ValueError, match="clairvoyant"):
         oracle.reset(ctx(scn, [[0.0, 0.0]]))
     with pytest.raises(ValueError, match="include 0"):
-        OracleController(name="oracle", sweeps=1, lattice=3, refine=0, bw_logits=[0.5])
+        OracleController(name="oracle", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=[0.5]))
 
 
 def test_charging_uavs_are_not_moved_and_batched_days_match_single_days(make_scenario):
@@ -132,11 +133,11 @@ def test_charging_uavs_are_not_moved_and_batched_days_match_single_days(make_sce
     status = [ACTIVE, CHARGING, ACTIVE]
     single = []
     for d, x in enumerate(maps):
-        g = GreedyController(name="greedy", sweeps=2, lattice=5)
+        g = GreedyController(name="greedy", options=SearchSettings(sweeps=2, lattice=5, refine=0, bw_logits=()))
         g.reset(ctx(scn, pos, day=d))
         single.append(g.act(observe(scn, pos, x, status=status)))
     assert np.all(single[0][1] == 0.0)
-    g = GreedyController(name="greedy", sweeps=2, lattice=5)
+    g = GreedyController(name="greedy", options=SearchSettings(sweeps=2, lattice=5, refine=0, bw_logits=()))
     g.reset_batch([ctx(scn, pos, day=d) for d in range(2)])
     obs = [observe(scn, pos, x, status=status) for x in maps]
     batched = g.act_batch({k: np.stack([o[k] for o in obs]) for k in obs[0]})
@@ -150,7 +151,7 @@ def test_oracle_bandwidth_search_never_serves_less_than_the_proportional_split(m
     day = np.stack([x_next] * scn.slots_per_day)
     pos = [[700.0, 700.0], [2100.0, 2100.0]]
     levels = [-1.0, -0.5, 0.0, 0.5, 1.0]
-    oracle = OracleController(name="oracle", sweeps=2, lattice=5, refine=1, bw_logits=levels)
+    oracle = OracleController(name="oracle", options=SearchSettings(sweeps=2, lattice=5, refine=1, bw_logits=levels))
     oracle.reset(ctx(scn, pos, demand=day))
     a = oracle.act(observe(scn, pos, x_next))
     assert set(np.round(a[:, 2], 6)) <= set(levels)

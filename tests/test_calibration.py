@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from dswm.calibration import calibrate, static_score
+from dswm.protocol.calibration import calibrate, static_score
 from dswm.config import ConfigError
-from dswm.core import Grid
-from dswm.evaluation import initial_deployment
-from dswm.physics import ServiceParams, served_ratio
+from dswm.sim.core import grid_of, initial_deployment
+from dswm.sim.physics import ServiceParams, served_ratio
 from prep.tensor import DemandTensor, GridSpec
 
 
@@ -28,7 +27,7 @@ def tensor(n_train=2, n_test=1, rows=5, cols=5, seed=3):
 
 def fixed_fleet_score(t, scn, u):
     """Served ratio of a fleet that never moves (no battery can run out), from the physics alone."""
-    grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
+    grid = grid_of(t)
     pos = torch.tensor(initial_deployment(t, grid, scn))[None]
     params = ServiceParams.from_scenario(dataclasses.replace(scn, demand_intensity=u))
     x = torch.tensor(t.demand[t.train_days].reshape(-1, grid.n_cells))

@@ -1,5 +1,6 @@
 """Config validation and profile resolution: the repository's config passes; each bad input stops up front."""
 import copy
+import dataclasses
 import os
 import subprocess
 import sys
@@ -7,8 +8,8 @@ import sys
 import pytest
 import yaml
 
-from dswm import runconfig
-from dswm.config import ConfigError, load_config
+from dswm import settings as runconfig
+from dswm.config import ConfigError, load_yaml
 
 from conftest import ROOT
 
@@ -17,7 +18,7 @@ SCHEMA = runconfig.load_schema(ROOT / "workflow" / "schemas" / "config.schema.ya
 
 @pytest.fixture
 def config():
-    return load_config(ROOT / "config.yaml")
+    return load_yaml(ROOT / "config.yaml")
 
 
 def error_of(config):
@@ -74,22 +75,61 @@ def test_bad_keys_and_values_are_named_with_the_expected_form(config, mutate, wo
 
 def test_resolution_keeps_only_the_selected_profile_and_its_hash_differs(config):
     demo = runconfig.resolve(config)
-    assert demo["profile"] == "demo" and demo["run"] == config["profiles"]["demo"] and "profiles" not in demo
+    assert demo.profile == "demo" and demo.run.datasets == tuple(config["profiles"]["demo"]["datasets"])
+    assert demo.run.seeds == {d: tuple(s) for d, s in config["profiles"]["demo"]["seeds"].items()}
     smoke = runconfig.resolve({**config, "profile": "smoke"})
-    assert smoke["run"]["eval_days"] == {"id": 1, "ood": 1}
-    assert runconfig.config_hash(demo) != runconfig.config_hash(smoke)
-    assert runconfig.config_hash(demo) == runconfig.config_hash(runconfig.resolve(copy.deepcopy(config)))
-    jobs = runconfig.jobs(demo)
-    assert len(jobs) == sum(len(demo["run"]["seeds"][d]) for d in demo["run"]["datasets"]) * len(demo["methods"]["run"])
+    assert (smoke.run.eval_days.id, smoke.run.eval_days.ood) == (1, 1)
+    assert demo.hash() != smoke.hash()
+    assert demo.hash() == runconfig.resolve(copy.deepcopy(config)).hash()
+    jobs = demo.jobs()
+    assert len(jobs) == sum(len(demo.run.seeds[d]) for d in demo.run.datasets) * len(config["methods"]["run"])
     with pytest.raises(ConfigError, match="'profile' must be one of demo, smoke, paper; found 'fast'"):
         runconfig.resolve({**config, "profile": "fast"})
+
+
+def test_settings_are_typed_and_come_back_from_their_plain_form(config):
+    s = runconfig.resolve(config)
+    assert s.methods["greedy"].options.sweeps == config["methods"]["greedy"]["sweeps"]
+    assert s.methods["dswm"].options.planner.n_samples == config["dswm"]["budgets"]["demo"]["planner"]["n_samples"]
+    assert s.methods["dswm_wo_unc"].options.planner.lambda_u == 0.0
+    assert s.display.progress_mininterval_s == config["evaluation"]["progress_mininterval_s"]
+    back = runconfig.Settings.from_plain(runconfig.audit_slice(s))
+    assert back == dataclasses.replace(s, display=None)
+
+
+def test_a_slice_is_the_same_text_whatever_the_key_order_of_the_yaml(config):
+    def reordered(node):
+        return {k: reordered(node[k]) for k in reversed(list(node))} if isinstance(node, dict) else node
+
+    a, b = runconfig.resolve(config), runconfig.resolve(reordered(config))
+    for method in config["methods"]["run"]:
+        assert runconfig.param(runconfig.evaluate_slice(a, method)) == runconfig.param(runconfig.evaluate_slice(b, method))
+    assert runconfig.param(runconfig.audit_slice(a)) == runconfig.param(runconfig.audit_slice(b))
+    changed = copy.deepcopy(config)
+    changed["evaluation"]["progress_mininterval_s"] = 30.0
+    c = runconfig.resolve(changed)
+    assert runconfig.param(runconfig.evaluate_slice(c, "greedy")) == runconfig.param(runconfig.evaluate_slice(a, "greedy"))
+    changed["scenario"]["altitude_m"] = 120.0
+    d = runconfig.resolve(changed)
+    assert runconfig.param(runconfig.evaluate_slice(d, "greedy")) != runconfig.param(runconfig.evaluate_slice(a, "greedy"))
+    assert runconfig.param(runconfig.prep_slice(d, "milan")) == runconfig.param(runconfig.prep_slice(a, "milan"))
+
+
+def test_a_train_slice_holds_no_planner_setting(config):
+    a = runconfig.resolve(config)
+    changed = copy.deepcopy(config)
+    changed["dswm"]["planner"]["gamma"] = 0.9
+    b = runconfig.resolve(changed)
+    assert runconfig.param(runconfig.train_slice(a, "dswm")) == runconfig.param(runconfig.train_slice(b, "dswm"))
+    assert runconfig.param(runconfig.evaluate_slice(a, "dswm")) != runconfig.param(runconfig.evaluate_slice(b, "dswm"))
+    assert runconfig.train_slice(a, "dswm")["method"]["options"]["planner"] is None
 
 
 def test_a_profile_dataset_without_seeds_is_refused(config):
     cfg = copy.deepcopy(config)
     del cfg["profiles"]["demo"]["seeds"]["yjmob"]
     with pytest.raises(ConfigError, match=r"profiles\.demo\.seeds\.yjmob' is missing"):
-        runconfig.check_profile_datasets(runconfig.resolve(cfg))
+        runconfig.resolve(cfg)
 
 
 def test_raw_source_without_its_files_is_refused(config, tmp_path):
@@ -97,14 +137,14 @@ def test_raw_source_without_its_files_is_refused(config, tmp_path):
     cfg["datasets"]["yjmob"]["source"] = "raw"
     cfg["datasets"]["yjmob"]["raw_files"] = ["data/raw/yjmob/yjmob100k-dataset1.csv.gz"]
     with pytest.raises(ConfigError) as err:
-        runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)
+        runconfig.resolve(cfg, root=tmp_path)
     assert "datasets.yjmob.raw_files[0]" in str(err.value) and "source: demo" in str(err.value)
     (tmp_path / "data" / "raw" / "yjmob").mkdir(parents=True)
     (tmp_path / "data" / "raw" / "yjmob" / "yjmob100k-dataset1.csv.gz").write_bytes(b"")
-    runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)  # present now: accepted
+    runconfig.resolve(cfg, root=tmp_path)  # present now: accepted
     cfg["datasets"]["milan"]["source"] = "raw"  # a glob that matches nothing
     with pytest.raises(ConfigError, match=r"datasets\.milan\.raw_files\[0\]"):
-        runconfig.check_raw_files(runconfig.resolve(cfg), tmp_path)
+        runconfig.resolve(cfg, root=tmp_path)
 
 
 @pytest.mark.parametrize("mutate, words", [

@@ -6,12 +6,16 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 import gymnasium as gym
-from dswm.energy import hover_power
-from dswm.env import (FleetCore, Grid, UAVFleetEnv, UAVFleetParallelEnv, fleet_state_from_obs, initial_batteries,
-                      initial_positions, synthetic_demand)
-from dswm.fleet import ACTIVE, CHARGING, RETURNING, FleetState, Geometry, fleet_step
+from dswm.sim.energy import hover_power
+from dswm.sim.scenario import load_scenario
+from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs, initial_batteries, initial_positions
+from dswm.sim.env import UAVFleetEnv, UAVFleetParallelEnv, synthetic_demand
+from dswm.sim.fleet import ACTIVE, CHARGING, RETURNING, FleetState, Geometry, fleet_step
+
+from conftest import ROOT
 
 GRID = Grid(rows=20, cols=20, cell_m=235.0)
+ROTOR = load_scenario(ROOT / "config.yaml").rotor
 
 
 def _core(scenario, days=3, **kw):
@@ -37,16 +41,16 @@ def test_hovering_uav_returns_after_17th_slot_charges_6_and_comes_back_full(make
     assert statuses[16] == RETURNING
     assert statuses[17:23] == [CHARGING] * 6
     assert statuses[23] == ACTIVE
-    assert energies[0] == pytest.approx(hover_power() * 600.0, rel=1e-9)
+    assert energies[0] == pytest.approx(hover_power(ROTOR) * 600.0, rel=1e-9)
     assert energies[18:23] == [0.0] * 5
     # Back at the nearest station (1175, 1175) with a full battery.
     assert state.pos[0].tolist() == pytest.approx([1175.0, 1175.0])
     # Full at slot 24, then one more hovering slot.
-    assert float(state.battery_j[0]) == pytest.approx(1_972_800.0 - hover_power() * 600.0, rel=1e-9)
+    assert float(state.battery_j[0]) == pytest.approx(1_972_800.0 - hover_power(ROTOR) * 600.0, rel=1e-9)
 
 
 def test_return_flight_energy_by_hand(make_scenario):
-    from dswm.energy import rotor_power
+    from dswm.sim.energy import rotor_power
     scenario = make_scenario(n_uavs=1)
     geom = Geometry(width_m=4700.0, height_m=4700.0)
     state = FleetState(pos=torch.tensor([[1175.0 + 3000.0, 1175.0]], dtype=torch.float64),
@@ -54,7 +58,7 @@ def test_return_flight_energy_by_hand(make_scenario):
                        status=torch.tensor([RETURNING]), charge_left=torch.tensor([0]))
     state2, energy = fleet_step(state, torch.zeros(1, 3, dtype=torch.float64), geom, scenario)
     # Nearest station to (4175, 1175) is (3525, 1175): 650 m at 25 m/s = 26 s, then hover 574 s.
-    assert float(energy[0]) == pytest.approx(rotor_power(25.0) * 26.0 + hover_power() * 574.0, rel=1e-9)
+    assert float(energy[0]) == pytest.approx(rotor_power(25.0, ROTOR) * 26.0 + hover_power(ROTOR) * 574.0, rel=1e-9)
     assert state2.pos[0].tolist() == pytest.approx([3525.0, 1175.0])
     assert int(state2.status[0]) == CHARGING and int(state2.charge_left[0]) == 6
 
@@ -70,9 +74,9 @@ def test_displacement_is_norm_clipped_and_kept_in_area(make_scenario):
     step = 1500.0 / np.sqrt(2)
     assert nxt.pos[0].tolist() == pytest.approx([2000.0 + step, 2000.0 + step])
     assert nxt.pos[1].tolist() == pytest.approx([4700.0, 0.0])  # clipped to the area
-    from dswm.energy import rotor_power
-    assert float(energy[0]) == pytest.approx(rotor_power(1500.0 / 600.0) * 600.0, rel=1e-9)
-    assert float(energy[1]) == pytest.approx(rotor_power(np.hypot(100.0, 100.0) / 600.0) * 600.0, rel=1e-9)
+    from dswm.sim.energy import rotor_power
+    assert float(energy[0]) == pytest.approx(rotor_power(1500.0 / 600.0, ROTOR) * 600.0, rel=1e-9)
+    assert float(energy[1]) == pytest.approx(rotor_power(np.hypot(100.0, 100.0) / 600.0, ROTOR) * 600.0, rel=1e-9)
 
 
 def test_staggered_hovering_fleet_spends_1_1_to_1_3_mj_per_slot(scenario):

@@ -4,13 +4,15 @@ import polars as pl
 import pytest
 import torch
 
-from dswm.baselines import GreedyController, StaticController
-from dswm.core import Grid
-from dswm.evaluation import DAY_COLUMNS, eval_days_hash, evaluate, initial_deployment, split_summary
-from dswm.physics import ServiceParams, served_ratio
+from dswm.methods.search import SearchSettings
+from dswm.methods.classical import GreedyController, StaticController
+from dswm.sim.core import Grid
+from dswm.protocol.evaluation import DAY_COLUMNS, eval_days_hash, evaluate, split_summary
+from dswm.sim.core import initial_deployment
+from dswm.sim.physics import ServiceParams, served_ratio
 from prep.tensor import DemandTensor, GridSpec
 
-HOVER_W = 168.48  # SPEC section 1: hover power of the rotary-wing model
+HOVER_W = 168.48  # docs/PROTOCOL.md §1: hover power of the rotary-wing model
 
 
 def toy_tensor(n_train=3, n_test=4, rows=6, cols=6, seed=0):
@@ -87,7 +89,7 @@ def test_trajectories_hold_positions_per_slot_of_the_first_id_and_ood_day(scenar
 def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_scenario):
     scn = make_scenario(n_uavs=3, demand_intensity=150.0)
     t = toy_tensor(n_test=4)
-    runs = [evaluate(tensor=t, controller=GreedyController(name="greedy", sweeps=1, lattice=3), scenario=scn,
+    runs = [evaluate(tensor=t, controller=GreedyController(name="greedy", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=())), scenario=scn,
                      seed=1, limits={"id": None, "ood": 1}, profile="demo", batch_days=b).days
             for b in (True, False, True)]
     cols = ["day", "sr_mean", "energy_kj_per_slot", "jain"]
@@ -105,7 +107,7 @@ def test_split_summary_averages_days_of_each_split():
 
 
 def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path):
-    from dswm.atomic import atomic_path, write_json
+    from prep.atomic import atomic_path, write_json
 
     target = tmp_path / "seed0" / "days.parquet"
     with pytest.raises(RuntimeError):
@@ -120,8 +122,8 @@ def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path
 def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkeypatch):
     import json
 
-    from dswm.evaluation import read_model_record, write_days
-    from dswm.jobs import model_record
+    from dswm.protocol.evaluation import read_model_record, write_days
+    from dswm.pipeline.jobs import model_record
     from prep.rawio import sha256_file
 
     monkeypatch.chdir(tmp_path)
@@ -149,7 +151,7 @@ def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkey
 def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path):
     import json
 
-    from dswm.jobs import model_record
+    from dswm.pipeline.jobs import model_record
 
     (tmp_path / "model.pt").write_bytes(b"another model")
     (tmp_path / "train_manifest.json").write_text(json.dumps({"model_sha256": "ab" * 32}))

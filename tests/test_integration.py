@@ -8,6 +8,7 @@ calibrates u on the Milan training days, and writes both tables.
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -19,14 +20,14 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from conftest import ROOT
-from dswm.config import load_config
+from dswm.config import load_yaml
 
 pytestmark = pytest.mark.integration
 
 SKIP = {".git", ".venv", "results", "logs", ".snakemake", "__pycache__", ".pytest_cache", ".hypothesis", "build"}
 DATASETS = ("milan", "shanghai", "yjmob")
 BASELINES = ("static", "greedy", "oracle")
-METHODS = tuple(load_config(ROOT / "config.yaml")["methods"]["run"])  # every configured method is tabulated
+METHODS = tuple(load_yaml(ROOT / "config.yaml")["methods"]["run"])  # every configured method is tabulated
 CONTRACT_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                     "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
                     "dataset"]  # docs/ARCHITECTURE.md, "Results"
@@ -108,9 +109,9 @@ def test_result_files_follow_the_contract(run):
 
 
 def training_sources(work):
-    from dswm import controllers, runconfig
+    from dswm import settings as runconfig
 
-    return controllers.training_sources(runconfig.resolve({**load_config(work / "config.yaml"), "profile": "smoke"}))
+    return runconfig.resolve({**load_yaml(work / "config.yaml"), "profile": "smoke"}).training_sources()
 
 
 def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_verifies_them(run):
@@ -137,7 +138,7 @@ def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_veri
 
 
 def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifies_it(run):
-    from dswm.evaluation import read_model_record
+    from dswm.protocol.evaluation import read_model_record
     from prep.rawio import sha256_file
 
     sources = training_sources(run)
@@ -176,7 +177,7 @@ def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifi
 
 def evaluate_runs(work):
     client = MlflowClient(tracking_uri="sqlite:///" + str(work / "results" / "mlflow.db"))
-    exp = client.get_experiment_by_name(load_config(work / "config.yaml")["mlflow"]["experiment"])
+    exp = client.get_experiment_by_name(load_yaml(work / "config.yaml")["mlflow"]["experiment"])
     return client, client.search_runs([exp.experiment_id], filter_string="tags.stage = 'evaluate'")
 
 
@@ -188,7 +189,7 @@ def test_every_job_is_one_finished_mlflow_run_and_a_rerun_adds_no_duplicate(run)
         assert r.info.status == "FINISHED"
         assert (r.data.tags["seed"], r.data.tags["profile"]) == ("0", "smoke")
         assert len(r.data.tags["config_hash"]) == 12 and r.data.tags["git_commit"]
-        assert r.data.params["run.eval_days.id"] == "1"
+        assert r.data.params["eval_days.id"] == "1" and r.data.params["method.name"] == r.data.tags["method"]
         assert {"id/sr_mean", "ood/sr_mean", "day/sr_mean"} <= set(r.data.metrics)
         assert "days.parquet" in [a.path for a in client.list_artifacts(r.info.run_id)]
     proc = snakemake(run, "--cores", "1", "--force", "results/yjmob/static/seed0/days.parquet")
@@ -201,10 +202,54 @@ def test_every_job_is_one_finished_mlflow_run_and_a_rerun_adds_no_duplicate(run)
 
 def test_config_keeps_the_intensity_the_calibrate_rule_prints(run):
     report = json.loads((run / "results" / "calibration" / "demand_intensity.json").read_text())
-    cfg = load_config(run / "config.yaml")
+    cfg = load_yaml(run / "config.yaml")
     assert report["dataset"] == "milan" and report["train_days"][0] == "2013-11-01" and len(report["train_days"]) == 10
     assert report["served_ratio"] == pytest.approx(cfg["calibration"]["target_served_ratio"],
                                                    abs=cfg["calibration"]["tolerance"])
     # config.yaml holds the printed value (rounded to 4 significant digits)
     assert cfg["scenario"]["demand_intensity"] == pytest.approx(report["demand_intensity"], rel=5e-4)
     assert "calibrated demand_intensity" in (run / "logs" / "calibrate.log").read_text()
+
+
+def scheduled(work) -> dict[str, int]:
+    """{rule: job count} that a dry run of the smoke targets would run now ({} when nothing is to be done)."""
+    proc = snakemake(work, "tables", "calibrate", "--cores", "2", "-n")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    text = proc.stdout + proc.stderr
+    if "Job stats" not in text:
+        return {}
+    table = text.split("Job stats", 1)[1].split("total", 1)[0]
+    return {rule: int(n) for rule, n in re.findall(r"^(\w+)\s+(\d+)$", table, flags=re.M)}
+
+
+def test_a_job_reruns_on_the_settings_it_reads_only(run):
+    """Each rule's trigger is the slice of settings its job reads: display settings and key order rerun nothing,
+    a scenario constant reruns what depends on it and no data preparation (last: it rewrites config.yaml)."""
+    import yaml
+
+    assert snakemake(run, "tables", "calibrate", "--cores", "2").returncode == 0  # up to date after earlier tests
+    original = (run / "config.yaml").read_text()
+    cfg = yaml.safe_load(original)
+    assert scheduled(run) == {}
+
+    def reordered(node):
+        return {k: reordered(node[k]) for k in reversed(list(node))} if isinstance(node, dict) else node
+
+    try:
+        slower = yaml.safe_load(original)
+        slower["evaluation"]["progress_mininterval_s"] = cfg["evaluation"]["progress_mininterval_s"] * 7
+        (run / "config.yaml").write_text(yaml.safe_dump(slower, sort_keys=False))
+        assert scheduled(run) == {}
+        (run / "config.yaml").write_text(yaml.safe_dump(reordered(cfg), sort_keys=False))
+        assert list(yaml.safe_load((run / "config.yaml").read_text())) != list(cfg)
+        assert scheduled(run) == {}
+        higher = yaml.safe_load(original)
+        higher["scenario"]["altitude_m"] = cfg["scenario"]["altitude_m"] + 20.0
+        (run / "config.yaml").write_text(yaml.safe_dump(higher, sort_keys=False))
+        jobs = scheduled(run)
+        assert {"train", "evaluate", "audit_report", "audit", "tables"} <= set(jobs), jobs
+        # calibrate reads the scenario too (all but the intensity it calibrates); nothing of the data is redone
+        assert set(jobs) - {"train", "evaluate", "audit_report", "audit", "tables", "calibrate"} == set(), jobs
+        assert jobs["evaluate"] == len(DATASETS) * len(METHODS)
+    finally:
+        (run / "config.yaml").write_text(original)

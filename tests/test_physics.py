@@ -1,4 +1,5 @@
 """Service model: channel values by hand, a served-ratio case small enough to compute by hand, properties."""
+import dataclasses
 import math
 
 import pytest
@@ -6,7 +7,12 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from dswm.physics import ServiceParams, jain_index, los_probability, path_loss_db, served_ratio, service
+from dswm.sim.physics import ServiceParams, jain_index, los_probability, path_loss_db, served_ratio, service
+from dswm.sim.scenario import load_scenario
+
+from conftest import ROOT
+
+BASE = ServiceParams.from_scenario(load_scenario(ROOT / "config.yaml"))  # the constants of docs/PROTOCOL.md §1
 
 C0 = 299_792_458.0
 
@@ -25,26 +31,26 @@ def hand_rate(dist_m, share_hz):
 
 def test_los_probability_at_chosen_angles():
     # 1 / (1 + 9.61 exp(-0.16 (theta - 9.61))), theta in degrees
-    assert los_probability(45.0) == pytest.approx(1 / (1 + 9.61 * math.exp(-0.16 * 35.39)), rel=1e-12)
-    assert los_probability(45.0) == pytest.approx(0.96769, abs=1e-5)
-    assert los_probability(9.61) == pytest.approx(1 / 10.61, rel=1e-12)
-    assert los_probability(90.0) == pytest.approx(0.999975, abs=1e-6)
+    assert los_probability(45.0, BASE.los_a, BASE.los_b) == pytest.approx(1 / (1 + 9.61 * math.exp(-0.16 * 35.39)), rel=1e-12)
+    assert los_probability(45.0, BASE.los_a, BASE.los_b) == pytest.approx(0.96769, abs=1e-5)
+    assert los_probability(9.61, BASE.los_a, BASE.los_b) == pytest.approx(1 / 10.61, rel=1e-12)
+    assert los_probability(90.0, BASE.los_a, BASE.los_b) == pytest.approx(0.999975, abs=1e-6)
     t = torch.tensor([9.61, 45.0], dtype=torch.float64)
-    assert torch.allclose(los_probability(t), torch.tensor([1 / 10.61, 0.967692], dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(los_probability(t, BASE.los_a, BASE.los_b), torch.tensor([1 / 10.61, 0.967692], dtype=torch.float64), atol=1e-6)
 
 
 def test_path_loss_at_chosen_distances():
     # Directly below at 100 m: FSPL 78.469 dB + ~1 dB LoS excess.
-    assert path_loss_db(100.0) == pytest.approx(20 * math.log10(4 * math.pi * 2e9 * 100 / C0) + 1.0 + 19 * (1 - 0.999975),
+    assert path_loss_db(100.0, BASE) == pytest.approx(20 * math.log10(4 * math.pi * 2e9 * 100 / C0) + 1.0 + 19 * (1 - 0.999975),
                                                 abs=1e-4)
-    assert path_loss_db(100.0) == pytest.approx(79.469, abs=1e-3)
+    assert path_loss_db(100.0, BASE) == pytest.approx(79.469, abs=1e-3)
     # 1 km horizontal: theta = asin(100 / 1004.99) = 5.71 deg -> mostly NLoS.
     d = math.hypot(1000.0, 100.0)
     p = hand_los(math.degrees(math.asin(100 / d)))
     assert p == pytest.approx(0.0528, abs=1e-4)
     expected = 20 * math.log10(4 * math.pi * 2e9 * d / C0) + p + (1 - p) * 20
-    assert path_loss_db(d) == pytest.approx(expected, rel=1e-12)
-    assert float(path_loss_db(torch.tensor(d, dtype=torch.float64))) == pytest.approx(expected, rel=1e-12)
+    assert path_loss_db(d, BASE) == pytest.approx(expected, rel=1e-12)
+    assert float(path_loss_db(torch.tensor(d, dtype=torch.float64), BASE)) == pytest.approx(expected, rel=1e-12)
 
 
 CELLS = torch.tensor([[0.0, 0.0], [300.0, 0.0], [2000.0, 0.0]], dtype=torch.float64)
@@ -60,7 +66,7 @@ def _sr(demand, pos, params, available=None, bw_logit=None):
 
 def test_two_uavs_three_cells_by_hand_unsaturated():
     u = 400.0
-    params = ServiceParams(demand_intensity=u)
+    params = dataclasses.replace(BASE, demand_intensity=u)
     x = [1.0, 3.0, 2.0]
     res = _sr(x, [[100.0, 0.0], [2000.0, 0.0]], params)
     # UAV 0 serves cells 0 and 1 (shares 1/4 and 3/4 of B), UAV 1 serves cell 2 with all of B.
@@ -79,7 +85,7 @@ def test_saturation_caps_fulfilment():
     # Hand values: r0 / r0_bps = 169.1 per unit of cell 0, 117.5 for cell 1, 322.3 for cell 2 -> u = 200
     # leaves cells 0 and 1 short and saturates cell 2.
     u = 200.0
-    params = ServiceParams(demand_intensity=u)
+    params = dataclasses.replace(BASE, demand_intensity=u)
     x = [1.0, 3.0, 2.0]
     res = _sr(x, [[100.0, 0.0], [2000.0, 0.0]], params)
     r = [hand_rate(math.hypot(100, 100), 5e6), hand_rate(math.hypot(200, 100), 15e6), hand_rate(100.0, 20e6)]
@@ -90,14 +96,14 @@ def test_saturation_caps_fulfilment():
 
 
 def test_bandwidth_logit_reweights_shares():
-    params = ServiceParams(demand_intensity=400.0)
+    params = dataclasses.replace(BASE, demand_intensity=400.0)
     res = _sr([1.0, 3.0, 0.0], [[100.0, 0.0], [2000.0, 0.0]], params, bw_logit=[math.log(2.0), 0.0])
     # tau = 2: weights 1^2 and 3^2 -> shares 1/10 and 9/10 of B; cell 2 has no demand and gets nothing.
     assert res.share_hz[0].tolist() == pytest.approx([2e6, 18e6, 0.0], rel=1e-9)
 
 
 def test_no_available_uav_serves_nothing_and_empty_slot_is_served():
-    params = ServiceParams(demand_intensity=40.0)
+    params = dataclasses.replace(BASE, demand_intensity=40.0)
     res = _sr([1.0, 3.0, 2.0], [[100.0, 0.0], [2000.0, 0.0]], params, available=[False, False])
     assert float(res.sr[0]) == 0.0
     res = _sr([0.0, 0.0, 0.0], [[100.0, 0.0], [2000.0, 0.0]], params)
@@ -105,7 +111,7 @@ def test_no_available_uav_serves_nothing_and_empty_slot_is_served():
 
 
 def test_unavailable_uav_is_skipped_by_association():
-    params = ServiceParams(demand_intensity=40.0)
+    params = dataclasses.replace(BASE, demand_intensity=40.0)
     res = _sr([1.0, 3.0, 2.0], [[100.0, 0.0], [2000.0, 0.0]], params, available=[True, False])
     assert res.assoc[0].tolist() == [0, 0, 0]
 
@@ -122,7 +128,7 @@ coords = st.floats(min_value=0.0, max_value=4000.0, allow_nan=False)
 demands = st.floats(min_value=0.0, max_value=5.0, allow_nan=False)
 GRID = torch.stack(torch.meshgrid(torch.arange(5) * 800.0 + 400, torch.arange(5) * 800.0 + 400, indexing="xy"),
                    -1).reshape(-1, 2).double()
-PARAMS = ServiceParams(demand_intensity=300.0)
+PARAMS = dataclasses.replace(BASE, demand_intensity=300.0)
 
 
 @settings(max_examples=60, deadline=None)
@@ -189,7 +195,7 @@ def test_sr_gradient_points_toward_demand_the_uav_can_still_gain(px, py, g, xg):
     x = torch.zeros(25, dtype=torch.float64)
     x[g] = xg
     pos = torch.tensor([[[px, py]]], dtype=torch.float64, requires_grad=True)
-    res = service(x, pos, torch.ones(1, 1, dtype=torch.bool), GRID, params=ServiceParams(demand_intensity=3000.0))
+    res = service(x, pos, torch.ones(1, 1, dtype=torch.bool), GRID, params=dataclasses.replace(BASE, demand_intensity=3000.0))
     offset = GRID[g] - pos.detach()[0, 0]
     assume(float(offset.norm()) > 1.0)  # a UAV right above its only cell has no direction to go
     # u = 3000 asks for >= 750 Mbps, far above any 20 MHz link: the cell is never saturated.
@@ -218,15 +224,15 @@ def test_float32_gradients_stay_finite_for_tiny_bandwidth_shares():
 def test_gradients_are_finite_and_zero_for_a_uav_right_above_its_cell():
     pos = torch.tensor([[[300.0, 0.0]]], dtype=torch.float32, requires_grad=True)
     x = torch.tensor([0.0, 5.0, 0.0])
-    res = service(x, pos, torch.ones(1, 1, dtype=torch.bool), CELLS.float(), params=ServiceParams(demand_intensity=3000.0))
+    res = service(x, pos, torch.ones(1, 1, dtype=torch.bool), CELLS.float(), params=dataclasses.replace(BASE, demand_intensity=3000.0))
     res.sr.sum().backward()
     assert pos.grad.tolist() == [[[0.0, 0.0]]]  # the apex of the cone: zero subgradient, not NaN
-    assert float(path_loss_db(torch.tensor(100.0, dtype=torch.float64))) == pytest.approx(path_loss_db(100.0), abs=1e-9)
+    assert float(path_loss_db(torch.tensor(100.0, dtype=torch.float64), BASE)) == pytest.approx(path_loss_db(100.0, BASE), abs=1e-9)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_index(dtype):
-    from dswm.physics import associate, nearest_pairs, nearest_pairs_tensor
+    from dswm.sim.physics import associate, nearest_pairs, nearest_pairs_tensor
 
     gen = torch.Generator().manual_seed(3)
     cells = (torch.rand(50, 2, generator=gen, dtype=torch.float64) * 3000).to(dtype)

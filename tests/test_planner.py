@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 import torch
 
-from dswm.core import FleetCore, Grid, fleet_state_from_obs
-from dswm.env import synthetic_demand
-from dswm.fleet import ACTIVE, CHARGING, RETURNING, available, fleet_step
-from dswm.physics import ServiceParams, served_ratio
-from dswm.planner import AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, anchor, cem
-from dswm.rssm import RSSMConfig
-from dswm.wm_modules import symlog
-from dswm.world_model import WorldModel, WorldModelConfig
+from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs
+from dswm.sim.env import synthetic_demand
+from dswm.sim.fleet import ACTIVE, CHARGING, RETURNING, available, fleet_step
+from dswm.sim.physics import ServiceParams, served_ratio
+from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, anchor, cem
+from dswm.methods.dswm.rssm import RSSMConfig
+from dswm.methods.dswm.modules import symlog
+from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
 
 
 def test_cem_finds_known_optimum():
@@ -53,7 +53,8 @@ def _grid_setup(scenario, rows=6, cols=6):
 
 def _constant_head_model(scenario, grid, cells, params, maps):
     """A world model whose E heads output fixed maps (E, G) whatever the latent state."""
-    cfg = WorldModelConfig(rssm=RSSMConfig(deter=16, stoch=4, hidden=16, embed=16, action_dim=3 * scenario.n_uavs),
+    cfg = WorldModelConfig(rssm=RSSMConfig(deter=16, stoch=4, hidden=16, embed=16, min_std=0.1,
+                                           free_bits=0.1, kl_dyn=0.8, kl_rep=0.2),
                            ensemble=maps.shape[0], demand_hidden=8, demand_rank=4, enc_channels=4, head_hidden=16,
                            ema_nu=0.9, lambda_var=1.0, m_var=0.1, beta_kl=1.0, lambda_lpr=1.0, lambda_cal=0.1,
                            lambda_serve=1.0, service_head="physics")
@@ -135,7 +136,7 @@ def test_planner_warm_start_and_reproducibility(scenario):
     cfg = PlannerConfig(horizon=4, n_samples=32, n_elites=4, iterations=2, sigma0=0.3, sigma0_later=0.3,
                         min_std=0.05, gamma=0.9, rho=0.95, lambda_u=1.0, warm_start=True, continuation="hold",
                         proposal="none", proposal_sweeps=1, proposal_lattice=3, proposal_refine=0,
-                        proposal_bw_logits=(0.0,))
+                        proposal_bw_logits=(0.0,), compile=False)
     target = torch.full((4, scenario.n_uavs, 3), 0.4)
 
     def score(a):

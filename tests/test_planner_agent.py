@@ -3,11 +3,14 @@ import numpy as np
 import pytest
 import yaml
 
+import dataclasses
+
 from conftest import ROOT
-from dswm import controllers, runconfig
-from dswm.controllers import DayContext
-from dswm.core import FleetCore, Grid, initial_positions
-from dswm.env import synthetic_demand
+from dswm import settings as runconfig
+from dswm.methods import registry
+from dswm.methods.base import DayContext
+from dswm.sim.core import FleetCore, Grid, initial_positions
+from dswm.sim.env import synthetic_demand
 
 
 @pytest.fixture(scope="module")
@@ -17,10 +20,23 @@ def resolved():
     return runconfig.resolve(config)
 
 
+def build(method, settings, seed, **budget):
+    """The method's controller from resolved settings; ``budget`` (transitions, steps) overrides the profile's."""
+    m = settings.methods[method]
+    return registry.build(method, target=m.target, options=dataclasses.replace(m.options, **budget), seed=seed,
+                          device="cpu")
+
+
+@pytest.fixture(scope="module")
+def raw():
+    config = yaml.safe_load((ROOT / "config.yaml").read_text())
+    config["profile"] = "smoke"
+    return config
+
+
 @pytest.fixture(scope="module")
 def core(resolved):
-    from dswm.config import Scenario
-    scenario = Scenario.from_dict(resolved["scenario"])
+    scenario = resolved.scenario
     grid = Grid(rows=9, cols=9, cell_m=500.0)
     demand = synthetic_demand(days=3, rows=9, cols=9, seed=4) + 0.01
     c = FleetCore(demand=demand, grid=grid, scenario=scenario, dataset="agent-test", day_labels=["a", "b", "c"],
@@ -45,34 +61,34 @@ def _play(ctl, core, slots):
     return np.stack(out)
 
 
-def test_methods_are_configurations_of_one_controller(resolved):
-    built = {m: controllers.build(m, config=resolved, seed=0) for m in ("dswm", "dswm_wo_unc", "dswm_wo_dec")}
+def test_methods_are_configurations_of_one_controller(resolved, raw):
+    built = {m: build(m, resolved, 0) for m in ("dswm", "dswm_wo_unc", "dswm_wo_dec")}
     assert {type(c).__name__ for c in built.values()} == {"DSWMController"}
-    assert built["dswm"].settings.planner.lambda_u == resolved["dswm"]["planner"]["lambda_u"] > 0
+    assert built["dswm"].settings.planner.lambda_u == raw["dswm"]["planner"]["lambda_u"] > 0
     assert built["dswm_wo_unc"].settings.planner.lambda_u == 0.0
-    assert built["dswm_wo_dec"].settings.world_model["service_head"] == "mlp"
-    assert built["dswm"].settings.world_model["service_head"] == "physics"
-    cls = controllers.controller_class("dswm", resolved)
-    assert cls.budget_from_config(name="dswm", config=resolved) == {
-        "transitions": resolved["dswm"]["budgets"]["smoke"]["transitions"],
-        "steps": resolved["dswm"]["budgets"]["smoke"]["steps"]}
+    assert built["dswm_wo_dec"].settings.world_model.service_head == "mlp"
+    assert built["dswm"].settings.world_model.service_head == "physics"
+    s = built["dswm"].settings
+    assert (s.transitions, s.steps) == (raw["dswm"]["budgets"]["smoke"]["transitions"],
+                                        raw["dswm"]["budgets"]["smoke"]["steps"])
 
 
-def test_a_method_override_of_the_training_section_reaches_its_settings(resolved):
+def test_a_method_override_of_the_training_section_reaches_its_settings(raw):
     import copy
 
-    cfg = copy.deepcopy(resolved)
+    cfg = copy.deepcopy(raw)
     cfg["dswm"]["methods"]["dswm_wo_unc"]["training"] = {"lr": 3.0e-4}
-    built = {m: controllers.build(m, config=cfg, seed=0) for m in ("dswm", "dswm_wo_unc")}
+    settings = runconfig.resolve(cfg)
+    built = {m: build(m, settings, 0) for m in ("dswm", "dswm_wo_unc")}
     assert built["dswm_wo_unc"].settings.training.lr == 3.0e-4
-    assert built["dswm"].settings.training.lr == resolved["dswm"]["training"]["lr"] == 1.0e-3
-    assert built["dswm_wo_unc"].settings.training.batch == resolved["dswm"]["training"]["batch"]
+    assert built["dswm"].settings.training.lr == raw["dswm"]["training"]["lr"] == 1.0e-3
+    assert built["dswm_wo_unc"].settings.training.batch == raw["dswm"]["training"]["batch"]
 
 
 @pytest.mark.parametrize("method", ["dswm", "dswm_wo_dec"])
 def test_fit_save_load_act(resolved, core, tmp_path, method):
-    ctl = controllers.build(method, config=resolved, seed=3)
-    manifest = ctl.fit(core, budget={"transitions": 286, "steps": 4}, run_dir=tmp_path / "train")
+    ctl = build(method, resolved, 3, transitions=286, steps=4)
+    manifest = ctl.fit(core, run_dir=tmp_path / "train")
     assert manifest["n_transitions"] == 286 and manifest["steps"] == 4
     assert sorted(set(manifest["days"])) == [10, 11] and manifest["read_test_data"] is False
     assert len(manifest["history"]["losses/dem"]) == 4
@@ -81,7 +97,7 @@ def test_fit_save_load_act(resolved, core, tmp_path, method):
     a = _play(ctl, core, 4)
     assert a.shape == (4, core.scenario.n_uavs, 3) and np.isfinite(a).all() and np.abs(a).max() <= 1.0
     # a loaded copy with the same seed plans the same actions
-    other = controllers.build(method, config=resolved, seed=3)
+    other = build(method, resolved, 3)
     other.load(tmp_path / "model.pt")
     np.testing.assert_array_equal(_play(other, core, 4), a)
 
@@ -91,18 +107,18 @@ def test_a_finished_checkpoint_resumes_only_on_the_same_training_data(resolved, 
     import torch
 
     budget = {"transitions": 286, "steps": 3}
-    first = controllers.build("dswm", config=resolved, seed=1)
-    first.fit(core, budget=budget, run_dir=tmp_path / "train")
+    first = build("dswm", resolved, 1, **budget)
+    first.fit(core, run_dir=tmp_path / "train")
     weights = {k: v.clone() for k, v in first.model.state_dict().items()}
     # the same inputs again: the finished run is resumed, so not one more step changes the weights
-    again = controllers.build("dswm", config=resolved, seed=1)
-    again.fit(core, budget=budget, run_dir=tmp_path / "train")
+    again = build("dswm", resolved, 1, **budget)
+    again.fit(core, run_dir=tmp_path / "train")
     assert all(torch.equal(v, weights[k]) for k, v in again.model.state_dict().items())
     # other training data in the same run directory: trained anew, not the old weights
     changed = FleetCore(demand=core.demand.reshape(3, -1, 9, 9).numpy() * 1.5, grid=core.grid, scenario=core.scenario,
                         dataset="agent-test", day_labels=core.day_labels, init_pos=core.init_pos.numpy())
     changed.day_ids = core.day_ids
-    fresh = controllers.build("dswm", config=resolved, seed=1)
-    fresh.fit(changed, budget=budget, run_dir=tmp_path / "train")
+    fresh = build("dswm", resolved, 1, **budget)
+    fresh.fit(changed, run_dir=tmp_path / "train")
     differs = [k for k, v in fresh.model.state_dict().items() if not torch.equal(v, weights[k])]
     assert "rssm.gru.weight_hh" in differs, differs

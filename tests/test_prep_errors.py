@@ -10,8 +10,10 @@ import pytest
 import yaml
 
 from prep.demo.shanghai import _write_xlsx
-from prep.pipeline import prepare_dataset, raw_inputs
+from prep.pipeline import raw_inputs
 from prep.rawio import PrepError
+
+from conftest import prepare_from_config, dataset_of
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1383260400000  # 2013-11-01 00:00 CET
@@ -122,7 +124,7 @@ def test_bad_input_names_the_file_and_leaves_no_output(tmp_path, case):
     config["datasets"][dataset]["raw_files"] = [str(bad)]
     config["datasets"][dataset]["source"] = "raw"
     with pytest.raises(PrepError) as err:
-        prepare_dataset(config, dataset, raw=[str(bad)] if bad.exists() else [str(bad)], out_dir=out,
+        prepare_from_config(config, dataset, raw=[str(bad)] if bad.exists() else [str(bad)], out_dir=out,
                         reference_meta=None if dataset == "milan" else str(ref))
     msg = str(err.value)
     if not case.endswith("empty_crop"):
@@ -136,9 +138,9 @@ def test_missing_raw_file_is_reported_when_the_rule_inputs_are_built(tmp_path):
     config = _config()
     config["datasets"]["yjmob"].update(source="raw", raw_files=[str(tmp_path / "nowhere" / "*.csv.gz")])
     with pytest.raises(PrepError, match="nowhere"):
-        raw_inputs(config, "yjmob")
+        raw_inputs(dataset_of(config, "yjmob"), "yjmob")
     config["datasets"]["yjmob"]["source"] = "demo"
-    assert raw_inputs(config, "yjmob") == ["results/raw/yjmob/demo"]
+    assert raw_inputs(dataset_of(config, "yjmob"), "yjmob") == ["results/raw/yjmob/demo"]
 
 
 def test_a_failure_after_writing_leaves_no_partial_output(tmp_path, monkeypatch):
@@ -155,7 +157,7 @@ def test_a_failure_after_writing_leaves_no_partial_output(tmp_path, monkeypatch)
     monkeypatch.setattr(pl.DataFrame, "write_parquet", broken)
     config = _config()
     with pytest.raises(OSError, match="disk full"):
-        prepare_dataset(config, "milan", raw=[str(raw_dir)], out_dir=out, reference_meta=None)
+        prepare_from_config(config, "milan", raw=[str(raw_dir)], out_dir=out, reference_meta=None)
     assert list(out.iterdir()) == []
     assert tensor.META_FILE == "meta.json"
 
@@ -166,7 +168,7 @@ def test_drop_mode_drops_and_counts_out_of_range_rows(tmp_path):
     _milan(raw_dir, MILAN_BIG + f"10001\t{T0}\t39\t\t\t\t\t1\n" + f"4041\t{T0 - 600_000}\t39\t\t\t\t\t1\n" * 2)
     config = _config()
     config["datasets"]["milan"]["on_out_of_range"] = "drop"
-    meta = prepare_dataset(config, "milan", raw=[str(raw_dir)], out_dir=tmp_path / "out", reference_meta=None)
+    meta = prepare_from_config(config, "milan", raw=[str(raw_dir)], out_dir=tmp_path / "out", reference_meta=None)
     assert meta["dropped"] == {"square_outside_grid": 1, "outside_segments": 2}
     body = YJ_HEADER + "".join(f"{u},{d},{t},5,5\n" for u in range(3) for d in range(6) for t in range(48))
     bad = _yjmob(raw_dir, body + "7,1,3,201,5\n7,40,3,5,5\n7,41,3,5,5\n")
@@ -174,6 +176,6 @@ def test_drop_mode_drops_and_counts_out_of_range_rows(tmp_path):
     config["datasets"]["yjmob"]["split"] = {"train": [0, 3], "test": [4, 5]}
     ref = tmp_path / "milan_meta.json"
     ref.write_text('{"dataset": "milan", "train_mean_normalized": 0.2, "kappa": 1.0}')
-    meta = prepare_dataset(config, "yjmob", raw=[str(bad)], out_dir=tmp_path / "out_y", reference_meta=str(ref))
+    meta = prepare_from_config(config, "yjmob", raw=[str(bad)], out_dir=tmp_path / "out_y", reference_meta=str(ref))
     assert meta["dropped"] == {"cell_outside_grid": 1, "outside_segments": 2, "masked_999": 0,
                                "duplicate_records": 0}

@@ -124,5 +124,5 @@ def test_demo_dirt_is_counted_and_zero_cells_near_85_percent(tmp_path):
     assert raw.dropped["zero_location"] == n_zero > 0
     assert raw.dropped["end_before_start"] == n_rev > 0
     assert raw.notes["crossing_midnight"] > 0
-    # SPEC 4: about 85% zero cells after 470 m gridding and the trailing window.
+    # docs/PROTOCOL.md §4: about 85% zero cells after 470 m gridding and the trailing window.
     assert abs(stats.zero_cell_rate(raw.values) - 0.853) < 0.03

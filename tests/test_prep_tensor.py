@@ -11,8 +11,10 @@ import polars as pl
 import pytest
 import yaml
 
-from prep.pipeline import prepare_dataset
+
 from prep.tensor import load
+
+from conftest import prepare_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 META_KEYS = {"dataset", "source", "grid", "slots_per_day", "days", "split", "eval_days", "p99", "p99_all_days", "notes",
@@ -59,7 +61,7 @@ def test_p99_uses_training_days_only_and_load_round_trips(tmp_path):
     raw_dir.mkdir()
     write_milan_days(raw_dir, values)
     out = tmp_path / "data" / "milan"
-    meta = prepare_dataset(small_milan_config(str(raw_dir / "*.txt")), "milan", raw=[str(raw_dir)], out_dir=out,
+    meta = prepare_from_config(small_milan_config(str(raw_dir / "*.txt")), "milan", raw=[str(raw_dir)], out_dir=out,
                            reference_meta=None)
     train_p99 = float(np.percentile(values[:2].ravel(), 99))
     all_p99 = float(np.percentile(values.ravel(), 99))
@@ -104,7 +106,7 @@ def test_kappa_aligns_the_training_mean_with_the_reference(tmp_path):
     (tmp_path / "y.csv").write_text("\n".join(rows) + "\n")
     ref = tmp_path / "milan_meta.json"
     ref.write_text(json.dumps({"dataset": "milan", "train_mean_normalized": 0.3, "kappa": 1.0}))
-    meta = prepare_dataset(config, "yjmob", raw=[str(tmp_path / "y.csv")], out_dir=tmp_path / "out",
+    meta = prepare_from_config(config, "yjmob", raw=[str(tmp_path / "y.csv")], out_dir=tmp_path / "out",
                            reference_meta=str(ref))
     ten = np.repeat(dense / 3, 3, axis=1)
     p99 = float(np.percentile(ten[:10].ravel(), 99))
@@ -122,7 +124,7 @@ def prepared(tmp_path_factory):
     root = tmp_path_factory.mktemp("prepared")
     (root / "raw").mkdir()
     write_milan_days(root / "raw", np.full((4, 144, 20, 20), 2.0))
-    prepare_dataset(small_milan_config(str(root / "raw" / "*.txt")), "milan", raw=[str(root / "raw")],
+    prepare_from_config(small_milan_config(str(root / "raw" / "*.txt")), "milan", raw=[str(root / "raw")],
                     out_dir=root / "milan", reference_meta=None)
     return root / "milan"
 

@@ -111,7 +111,7 @@ def test_demo_matches_real_sample_and_spec_statistics(tmp_path):
     assert np.corrcoef(slot_profile(48), prof(real))[0, 1] > 0.95
     raw = yjmob.build(cfg, files)
     assert raw.week["lag"] == 7 and raw.week["pseudo_weekend_phases"] == sorted(cfg.demo.weekend_phases)
-    assert abs(stats.top_share(raw.values, 0.05) - 0.22) < 0.04  # SPEC 4: top 5% of cells carry ~22%
+    assert abs(stats.top_share(raw.values, 0.05) - 0.22) < 0.04  # docs/PROTOCOL.md §4: top 5% of cells carry ~22%
     assert raw.dropped["masked_999"] == masked.height
 
 

@@ -5,8 +5,8 @@ import json
 import polars as pl
 import pytest
 
-from dswm.controllers import BUILTIN
-from dswm.tables import CROSS_COLUMNS, MAIN_COLUMNS, build_tables
+from dswm.methods.registry import BUILTIN
+from dswm.protocol.tables import CROSS_COLUMNS, MAIN_COLUMNS, build_tables
 
 TABLES = {"main_dataset": "milan", "decimals": 3, "split_labels": {"id": "Weekday", "ood": "Holiday"},
           "class_order": ["world model", "model-free", "deployment", "upper bound"]}

@@ -2,7 +2,7 @@
 import pytest
 from mlflow.tracking import MlflowClient
 
-from dswm import tracking
+from dswm.pipeline import tracking
 
 RESOLVED = {"profile": "smoke", "scenario": {"n_uavs": 16, "channel": {"a": 9.61}},
             "methods": {"run": ["static", "greedy"]}, "mlflow": {}}
@@ -28,7 +28,7 @@ def runs(client, info, status=None):
 
 
 def open_job(cfg, tmp_path, **kw):
-    args = dict(mlflow_cfg=cfg, resolved=RESOLVED, stage="evaluate", dataset="milan", method="static", seed=0,
+    args = dict(mlflow_cfg=cfg, settings=RESOLVED, stage="evaluate", dataset="milan", method="static", seed=0,
                 config_hash="abc123", repo=tmp_path)
     args.update(kw)
     return tracking.job_run(**args)

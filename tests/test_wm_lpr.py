@@ -4,7 +4,7 @@ import copy
 import torch
 from torch import nn
 
-from dswm.wm_modules import ema_update, symexp, symlog, variance_margin
+from dswm.methods.dswm.modules import ema_update, symexp, symlog, variance_margin
 
 
 def test_ema_update_arithmetic():
@@ -62,8 +62,8 @@ def test_variance_margin_prevents_collapse():
 
 
 def test_demand_floor_and_head_layouts():
-    from dswm.wm_modules import DemandEnsemble
-    from dswm.world_model import DEMAND_FLOOR, to_demand
+    from dswm.methods.dswm.modules import DemandEnsemble
+    from dswm.methods.dswm.world_model import DEMAND_FLOOR, to_demand
 
     y = torch.tensor([-2.0, 0.0, 5e-5, 2e-4, 1.0])
     # symexp: [-, 0, 5.00013e-5 (< floor), 2.0002e-4, e - 1]; below the floor -> 0

@@ -2,13 +2,14 @@
 import torch
 from torch.distributions import Normal, kl_divergence
 
-from dswm.rssm import RSSM, RSSMConfig, gaussian_kl
+from dswm.methods.dswm.rssm import RSSM, RSSMConfig, gaussian_kl
 
 
 def _rssm(**kw) -> RSSM:
     torch.manual_seed(0)
-    cfg = RSSMConfig(deter=12, stoch=5, hidden=16, embed=7, action_dim=6, **kw)
-    return RSSM(cfg=cfg)
+    cfg = RSSMConfig(**{"deter": 12, "stoch": 5, "hidden": 16, "embed": 7, "min_std": 0.1, "free_bits": 0.1,
+                         "kl_dyn": 0.8, "kl_rep": 0.2, **kw})
+    return RSSM(cfg=cfg, action_dim=6)
 
 
 def _step(rssm: RSSM):

@@ -6,15 +6,14 @@ import pytest
 import torch
 import yaml
 
-from dswm.core import FleetCore, Grid
-from dswm.evaluation import initial_deployment
-from dswm.rssm import RSSMConfig
-from dswm.training import TrainConfig, collect, load_checkpoint, save_training_figure, train
-from dswm.world_model import WorldModel, WorldModelConfig
-from prep.pipeline import generate_demo, prepare_dataset
+from dswm.sim.core import core_from_tensor
+from dswm.methods.dswm.rssm import RSSMConfig
+from dswm.methods.dswm.training import TrainConfig, collect, load_checkpoint, save_training_figure, train
+from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
+from prep.pipeline import generate_demo
 from prep.tensor import load
 
-from conftest import ROOT
+from conftest import ROOT, dataset_of, prepare_from_config
 
 
 @pytest.fixture(scope="module")
@@ -22,22 +21,18 @@ def demo_core(tmp_path_factory):
     """A training-days core over two Milan demo training days (generated and prepared by the prep code)."""
     config = yaml.safe_load((ROOT / "config.yaml").read_text())
     tmp = tmp_path_factory.mktemp("milan_demo")
-    generate_demo(config, "milan", tmp / "raw")
-    prepare_dataset(config, "milan", raw=[str(tmp / "raw")], out_dir=tmp / "data", reference_meta=None)
+    generate_demo(dataset_of(config, "milan"), "milan", tmp / "raw")
+    prepare_from_config(config, "milan", raw=[str(tmp / "raw")], out_dir=tmp / "data", reference_meta=None)
     tensor = load(tmp / "data")
-    from dswm.config import Scenario
+    from dswm.sim.scenario import Scenario
     scenario = Scenario.from_dict(config["scenario"])
-    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
-    days = np.asarray(tensor.train_days[:2])
-    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[days]), grid=grid, scenario=scenario,
-                     init_pos=initial_deployment(tensor, grid, scenario), dataset="milan",
-                     day_labels=[tensor.labels[d] for d in days])
-    core.day_ids = days
+    core = core_from_tensor(tensor, scenario, tensor.train_days[:2])
     return core, config
 
 
 def _tiny(core, service_head="physics"):
-    cfg = WorldModelConfig(rssm=RSSMConfig(deter=32, stoch=8, hidden=32, embed=32, action_dim=3 * core.scenario.n_uavs),
+    cfg = WorldModelConfig(rssm=RSSMConfig(deter=32, stoch=8, hidden=32, embed=32, min_std=0.1,
+                                           free_bits=0.1, kl_dyn=0.8, kl_rep=0.2),
                            ensemble=3, demand_hidden=16, demand_rank=8, enc_channels=4, head_hidden=32, ema_nu=0.95,
                            lambda_var=1.0, m_var=0.1, beta_kl=1.0, lambda_lpr=1.0, lambda_cal=0.1, lambda_serve=1.0,
                            service_head=service_head)
@@ -71,6 +66,19 @@ def test_collection_records_training_days(demo_core, replay):
     win = replay.window_maps(torch.tensor([replay.rows[0]]), torch.tensor([9]))[0]
     np.testing.assert_array_equal(win.numpy(), obs["demand"][0])
     assert batch["demand"].shape == (8, 3, 7, core.grid.rows, core.grid.cols)
+
+
+def test_greedy_collection_moves_the_fleet_with_the_greedy_search(demo_core):
+    """``collect_policy: greedy`` steps the training days with the project's BCD search (one cheap sweep)."""
+    core, _ = demo_core
+    lloyd = collect(core, n_transitions=143, cfg=_train_cfg(explore_std=0.0, bw_explore_std=0.0), seed=0,
+                    day_ids=core.day_ids)
+    greedy = collect(core, n_transitions=143, cfg=_train_cfg(collect_policy="greedy", explore_std=0.0,
+                                                             bw_explore_std=0.0), seed=0, day_ids=core.day_ids)
+    assert greedy.n_transitions == lloyd.n_transitions == 143
+    a, b = torch.cat(greedy.actions), torch.cat(lloyd.actions)
+    assert a.shape == b.shape == (143, core.scenario.n_uavs, 3) and float(a.abs().max()) <= 1.0
+    assert float((a[..., :2] - b[..., :2]).abs().max()) > 0.05  # another policy moved the fleet
 
 
 @pytest.mark.parametrize("head", ["physics", "mlp"])

@@ -6,8 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from dswm import controllers, runconfig
-from dswm.config import load_config
+from dswm import settings as runconfig
+from dswm.config import load_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -19,13 +19,13 @@ def dry_run(*targets: str) -> subprocess.CompletedProcess:
 
 
 def test_methods_that_share_a_training_get_no_train_job_and_evaluate_the_source_model():
-    resolved = runconfig.resolve({**load_config(ROOT / "config.yaml"), "profile": "demo"})
-    sources = controllers.training_sources(resolved)
+    resolved = runconfig.resolve({**load_yaml(ROOT / "config.yaml"), "profile": "demo"})
+    sources = resolved.training_sources()
     assert sources["dswm_wo_unc"] == "dswm" and sources["dswm_wo_dec"] == "dswm_wo_dec"
     out = dry_run("tables")
     assert out.returncode == 0, out.stdout + out.stderr
     text = out.stdout + out.stderr
-    seeds = [(ds, s) for ds in resolved["run"]["datasets"] for s in runconfig.seeds(resolved, ds)]
+    seeds = [(ds, s) for ds in resolved.run.datasets for s in resolved.seeds(ds)]
     trained = sorted(re.findall(r"^rule train:\n(?:\s+.*\n)*?\s+output: results/(\w+)/(\w+)/seed(\d+)/model\.pt",
                                 text, flags=re.M))
     assert trained == sorted((ds, m, str(s)) for ds, s in seeds for m in ("dswm", "dswm_wo_dec"))
@@ -36,7 +36,7 @@ def test_methods_that_share_a_training_get_no_train_job_and_evaluate_the_source_
         assert inputs.split(", ")[:2] == [f"results/{ds}/dswm/seed{s}/model.pt",
                                           f"results/{ds}/dswm/seed{s}/train_manifest.json"]
     counts = dict(re.findall(r"^(train|evaluate)\s+(\d+)$", text, flags=re.M))
-    assert counts == {"train": str(2 * len(seeds)), "evaluate": str(len(resolved["methods"]["run"]) * len(seeds))}
+    assert counts == {"train": str(2 * len(seeds)), "evaluate": str(len(resolved.methods) * len(seeds))}
 
 
 def test_the_model_of_a_method_that_shares_a_training_cannot_be_requested():

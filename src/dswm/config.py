@@ -1,23 +1,29 @@
-"""Typed scenario configuration built from the ``scenario`` section of ``config.yaml``.
+"""The one typed builder of settings, the one ``ConfigError``, and the project's stable hash.
 
-Every constant of SPEC section 1 lives in one frozen dataclass tree. ``Scenario.from_dict`` refuses unknown
-or missing keys and values of the wrong type with a message that names the key, so a typo never silently
-falls back to a default.
+Every settings section of ``config.yaml`` (scenario, evaluation, methods, DSWM, datasets, ...) is a frozen,
+keyword-only dataclass built from its mapping by :func:`build`. Every field is required (config.yaml writes
+every value out, so the code holds no second copy of a default); an unknown or missing key, or a value of the
+wrong type, raises :class:`ConfigError` naming the dotted key, what was expected and what was found.
+
+This module imports nothing from the rest of the project: every layer may use it.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
 import math
+import types
+import typing
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 import yaml
 
 
 class ConfigError(ValueError):
-    """A configuration value is missing, unknown or of the wrong form."""
+    """A configuration value is missing, unknown or of the wrong form; the message names the key."""
 
 
 def stable_hash(obj: Any, *, length: int = 16) -> str:
@@ -36,140 +42,126 @@ def stable_hash(obj: Any, *, length: int = 16) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
 
-def _build(cls, data: Mapping[str, Any], where: str):
-    """Build dataclass ``cls`` from ``data``, checking keys and scalar types; ``where`` names the section."""
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where}: expected a mapping, found {type(data).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
+def canonical_json(obj: Any) -> str:
+    """``obj`` (dataclasses converted) as JSON with sorted keys: equal settings give equal text, whatever the
+    key order of the YAML they came from (the form of every rule's ``params``)."""
+    return json.dumps(to_plain(obj), sort_keys=True, separators=(",", ":"))
+
+
+def to_plain(obj: Any) -> Any:
+    """Dataclasses as dicts and tuples as lists, recursively (what :func:`build` accepts back)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(k): to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v) for v in obj]
+    return obj
+
+
+def merge(base: Mapping[str, Any], over: Mapping[str, Any] | None) -> dict:
+    """``over`` merged into a deep copy of ``base``, mappings key by key (e.g. a method's overrides)."""
+    out = copy.deepcopy(dict(base))
+    for k, v in (over or {}).items():
+        out[k] = merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else copy.deepcopy(v)
+    return out
+
+
+def _kind(tp: Any) -> str:
+    """A readable name of an annotated type, for messages."""
+    if tp is float:
+        return "a finite number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "true or false"
+    if tp is str:
+        return "a string"
+    return str(tp).replace("typing.", "")
+
+
+def _convert(tp: Any, value: Any, where: str) -> Any:
+    """``value`` converted to the annotated type ``tp``; ConfigError naming ``where`` when it does not fit."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return build(tp, value, where)
+    if tp is Any:
+        return value
+    if origin is Literal:
+        if value not in typing.get_args(tp):
+            raise ConfigError(f"config key {where}: expected one of {list(typing.get_args(tp))}, found {value!r}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1:
+            return _convert(rest[0], value, where)
+        raise ConfigError(f"config key {where}: unsupported union type {tp}")
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key {where}: expected a list, found {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"config key {where}: expected {len(args)} items, found {len(value)} ({value!r})")
+        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin in (dict, Mapping) or tp in (dict,):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"config key {where}: expected a mapping, found {value!r}")
+        args = typing.get_args(tp)
+        if len(args) == 2:
+            return {str(k): _convert(args[1], v, f"{where}.{k}") for k, v in value.items()}
+        return dict(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config key {where}: expected true or false, found {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"config key {where}: expected a finite number, found {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config key {where}: expected an integer, found {value!r}")
+        return value
+    if tp is str:
+        if isinstance(value, bool) or not isinstance(value, (str, int)):
+            raise ConfigError(f"config key {where}: expected a string, found {value!r}")
+        return str(value)
+    raise ConfigError(f"config key {where}: unsupported type {_kind(tp)}")
+
+
+def build(cls: type, mapping: Any, where: str, **fixed: Any) -> Any:
+    """Build the keyword-only dataclass ``cls`` from a mapping; every field required, no unknown key.
+
+    Args:
+        cls: a dataclass whose fields are annotated with the supported types (numbers, str, bool, Literal,
+            tuples, optional values, mappings and nested dataclasses).
+        mapping: the config section.
+        where: the section's dotted key (``dswm.planner``), used in messages.
+        **fixed: fields given by the caller rather than by the config (not looked up in ``mapping``).
+
+    Raises:
+        ConfigError: a key is unknown or missing, or a value does not have the annotated type.
+    """
+    if not isinstance(mapping, Mapping):
+        raise ConfigError(f"config key {where}: expected a mapping, found {mapping!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in fixed]
+    unknown = sorted(set(mapping) - set(names))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; expected keys are {sorted(fields)}")
-    missing = sorted(set(fields) - set(data))
+        raise ConfigError(f"config key {where}: unknown key(s) {unknown}; expected {names}")
+    missing = [n for n in names if n not in mapping]
     if missing:
-        raise ConfigError(f"{where}: missing key(s) {missing}")
-    kwargs = {}
-    for name, f in fields.items():
-        value = data[name]
-        sub = _SUBSECTIONS.get((cls.__name__, name))
-        key = f"{where}.{name}"
-        if sub is not None:
-            kwargs[name] = _build(sub, value, key)
-            continue
-        expected = f.type if isinstance(f.type, str) else f.type.__name__
-        if expected == "int":
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ConfigError(f"{key}: expected an integer, found {value!r}")
-        elif expected == "float":
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ConfigError(f"{key}: expected a finite number, found {value!r}")
-            value = float(value)
-        kwargs[name] = value
-    return cls(**kwargs)
+        raise ConfigError(f"config key {where}: missing key(s) {missing}")
+    return cls(**{n: _convert(hints[n], mapping[n], f"{where}.{n}") for n in names}, **fixed)
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Channel:
-    """Al-Hourani air-to-ground channel (urban)."""
-
-    a: float
-    """Sigmoid constant a of the LoS probability."""
-    b: float
-    """Sigmoid constant b of the LoS probability (per degree)."""
-    eta_los_db: float
-    """Excess path loss of the LoS component, dB."""
-    eta_nlos_db: float
-    """Excess path loss of the NLoS component, dB."""
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Rotor:
-    """Rotary-wing power model constants (Zeng, Xu, Zhang 2019)."""
-
-    weight_n: float
-    air_density: float
-    rotor_radius_m: float
-    disc_area_m2: float
-    blade_angular_velocity: float
-    tip_speed_mps: float
-    rotor_solidity: float
-    fuselage_drag_ratio: float
-    induced_power_correction: float
-    profile_drag_coefficient: float
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class InitConfig:
-    """Initial state of every evaluated day."""
-
-    kmeans_seed: int
-    """Seed of the demand-weighted K-means of the mean training map."""
-    battery_low_frac: float
-    """Lowest initial battery, fraction of E_batt."""
-    battery_high_frac: float
-    """Highest initial battery, fraction of E_batt."""
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Scenario:
-    """All scenario constants of SPEC section 1."""
-
-    n_uavs: int
-    altitude_m: float
-    slot_s: float
-    slots_per_day: int
-    d_max_m: float
-    v_max_mps: float
-    carrier_hz: float
-    bandwidth_hz: float
-    tx_power_w: float
-    noise_psd_log10_w_per_hz: float
-    r0_bps: float
-    u_peak: float
-    demand_intensity: float
-    battery_j: float
-    reserve_frac: float
-    recharge_slots: int
-    n_stations: int
-    reward_alpha: float
-    reward_beta: float
-    obs_window: int
-    channel: Channel
-    rotor: Rotor
-    init: InitConfig
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any], *, where: str = "scenario") -> "Scenario":
-        """Build from the ``scenario`` mapping of config.yaml; raises ConfigError naming the bad key."""
-        scenario = _build(cls, data, where)
-        checks = [
-            ("n_uavs", scenario.n_uavs >= 1, "at least 1"),
-            ("slots_per_day", scenario.slots_per_day > scenario.obs_window, "more than obs_window"),
-            ("reserve_frac", 0.0 < scenario.reserve_frac < 1.0, "in (0, 1)"),
-            ("recharge_slots", scenario.recharge_slots >= 1, "at least 1"),
-            ("n_stations", scenario.n_stations == 4, "4 (one per quadrant)"),
-            ("demand_intensity", scenario.demand_intensity > 0, "positive"),
-            ("bandwidth_hz", scenario.bandwidth_hz > 0, "positive"),
-        ]
-        for key, ok, expected in checks:
-            if not ok:
-                raise ConfigError(f"{where}.{key}: expected {expected}, found {getattr(scenario, key)!r}")
-        return scenario
-
-    @property
-    def noise_psd_w_per_hz(self) -> float:
-        """Noise power spectral density N0 in W/Hz."""
-        return 10.0 ** self.noise_psd_log10_w_per_hz
-
-    def hash(self) -> str:
-        """Hash of every constant; recorded with each result so the audit can compare scenarios."""
-        return stable_hash(self)
-
-
-_SUBSECTIONS = {("Scenario", "channel"): Channel, ("Scenario", "rotor"): Rotor, ("Scenario", "init"): InitConfig}
-
-
-def load_config(path: str | Path = "config.yaml") -> dict:
-    """Read config.yaml as a plain dict (validation of the whole file is the workflow schema's job)."""
+def load_yaml(path: str | Path) -> dict:
+    """Read a YAML config file as a plain dict (its validation is :mod:`dswm.settings`' job)."""
     path = Path(path)
     try:
         with path.open() as fh:
@@ -179,11 +171,3 @@ def load_config(path: str | Path = "config.yaml") -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, found {type(data).__name__}")
     return data
-
-
-def load_scenario(path: str | Path = "config.yaml") -> Scenario:
-    """The Scenario of a config file."""
-    data = load_config(path)
-    if "scenario" not in data:
-        raise ConfigError(f"{path}: missing top-level key 'scenario'")
-    return Scenario.from_dict(data["scenario"])

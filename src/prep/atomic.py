@@ -78,3 +78,11 @@ def write_text(target: Path | str, text: str) -> None:
     """Writes a UTF-8 text file atomically."""
     with atomic_path(target) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def save_npz(path: str | Path, **arrays) -> None:
+    """Write compressed ``.npz`` arrays atomically."""
+    import numpy as np
+
+    with atomic_path(path) as tmp, tmp.open("wb") as fh:
+        np.savez_compressed(fh, **arrays)

@@ -1,15 +1,15 @@
 """Typed, frozen configuration of the `datasets:` section of config.yaml.
 
 Every key is required (config.yaml writes every default out); an unknown or missing key is an error that
-names its dotted path. Build with `datasets_config(config["datasets"])` or `dataset_config(config, name)`.
+names its dotted path. Build with `datasets_config(config["datasets"])`, or one dataset's section with
+`dataset_from_plain(name, section)`.
 """
 from __future__ import annotations
 
-import dataclasses
-import types
-import typing
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
+
+from dswm.config import ConfigError, build
 
 DATASETS = ("milan", "shanghai", "yjmob")
 
@@ -18,7 +18,7 @@ DATASETS = ("milan", "shanghai", "yjmob")
 class CommonPrep:
     """Settings shared by every dataset."""
 
-    norm_percentile: float  # percentile of TRAINING cell-slot values used to normalize (99 per SPEC 4)
+    norm_percentile: float  # percentile of TRAINING cell-slot values used to normalize (99 per docs/PROTOCOL.md §4)
     kappa_reference: str  # dataset whose training mean is the kappa reference ("milan")
     top_share_frac: float  # fraction of cells in the "top cells" share statistic (0.05)
 
@@ -184,60 +184,6 @@ class DatasetsConfig:
     yjmob: YJMobConfig
 
 
-class ConfigError(ValueError):
-    """A key of config.yaml is missing, unknown or of the wrong type."""
-
-
-def _convert(tp: Any, value: Any, where: str) -> Any:
-    """Converts a YAML value to the annotated type `tp`, raising ConfigError naming `where`."""
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, where)
-    if origin is Literal:
-        if value not in typing.get_args(tp):
-            raise ConfigError(f"config key {where}: expected one of {typing.get_args(tp)}, found {value!r}")
-        return value
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"config key {where}: expected a list, found {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(f"config key {where}: expected {len(args)} items, found {len(value)}")
-        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-    if origin in (typing.Union, types.UnionType):
-        raise ConfigError(f"config key {where}: unsupported union type")
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"config key {where}: expected a number, found {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"config key {where}: expected an integer, found {value!r}")
-        return value
-    if tp is str:
-        if isinstance(value, bool) or not isinstance(value, (str, int)):
-            raise ConfigError(f"config key {where}: expected a string, found {value!r}")
-        return str(value)
-    raise ConfigError(f"config key {where}: unsupported type {tp}")
-
-
-def _build(cls: type, mapping: Any, where: str) -> Any:
-    """Builds dataclass `cls` from a mapping, every field required, no unknown keys."""
-    if not isinstance(mapping, dict):
-        raise ConfigError(f"config key {where}: expected a mapping, found {mapping!r}")
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(mapping) - set(names))
-    if unknown:
-        raise ConfigError(f"config key {where}: unknown key(s) {unknown}; expected {names}")
-    missing = [n for n in names if n not in mapping]
-    if missing:
-        raise ConfigError(f"config key {where}: missing key(s) {missing}")
-    return cls(**{n: _convert(hints[n], mapping[n], f"{where}.{n}") for n in names})
-
-
 def datasets_config(section: dict) -> DatasetsConfig:
     """Builds the whole `datasets:` section.
 
@@ -246,24 +192,16 @@ def datasets_config(section: dict) -> DatasetsConfig:
     Returns:
         DatasetsConfig with `common` and one config per dataset.
     """
-    return _build(DatasetsConfig, section, "datasets")
+    return build(DatasetsConfig, section, "datasets")
 
 
-def dataset_config(config: dict, name: str) -> DatasetConfig:
-    """Builds one dataset's config from the full config dict (config["datasets"][name])."""
+def dataset_from_plain(name: str, section: dict) -> DatasetConfig:
+    """One dataset's typed section from its plain mapping (a job's settings slice, or config.yaml's)."""
     if name not in _CLASSES:
         raise ConfigError(f"unknown dataset {name!r}; expected one of {DATASETS}")
-    try:
-        section = config["datasets"][name]
-    except (KeyError, TypeError) as exc:
-        raise ConfigError(f"config key datasets.{name} is missing") from exc
-    return _build(_CLASSES[name], section, f"datasets.{name}")
+    return build(_CLASSES[name], section, f"datasets.{name}")
 
 
-def common_config(config: dict) -> CommonPrep:
-    """Builds datasets.common from the full config dict."""
-    try:
-        section = config["datasets"]["common"]
-    except (KeyError, TypeError) as exc:
-        raise ConfigError("config key datasets.common is missing") from exc
-    return _build(CommonPrep, section, "datasets.common")
+def common_from_plain(section: dict) -> CommonPrep:
+    """``datasets.common`` from its plain mapping."""
+    return build(CommonPrep, section, "datasets.common")

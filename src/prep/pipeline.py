@@ -5,7 +5,7 @@ import logging
 from pathlib import Path
 
 from prep import tensor
-from prep.config import common_config, dataset_config
+from prep.config import CommonPrep, DatasetConfig
 from prep.days import pick_eval_days
 from prep.rawio import PrepError, expand_paths
 
@@ -15,33 +15,32 @@ DEMO_DIR = "results/raw/{dataset}/demo"
 DATA_DIR = "results/data/{dataset}"
 
 
-def raw_inputs(config: dict, dataset: str, *, root: Path | str = ".") -> list[str]:
+def raw_inputs(cfg: DatasetConfig, dataset: str, *, root: Path | str = ".") -> list[str]:
     """The raw inputs of `prepare` for Snakemake: the demo directory, or the user's expanded raw files.
 
     Args:
-        config: the full config dict.
+        cfg: the dataset's typed section (``datasets.<dataset>``).
         dataset: dataset name.
         root: directory that relative raw paths are resolved against (the workflow's working directory).
     Returns:
         A list of paths (strings).
     """
-    cfg = dataset_config(config, dataset)
     if cfg.source == "demo":
         return [DEMO_DIR.format(dataset=dataset)]
     return [str(p) for p in expand_paths(cfg.raw_files, root=Path(root))]
 
 
-def reference_input(config: dict, dataset: str) -> list[str]:
+def reference_input(common: CommonPrep, dataset: str) -> list[str]:
     """[meta.json of the kappa reference dataset] for every other dataset, [] for the reference itself."""
-    ref = common_config(config).kappa_reference
+    ref = common.kappa_reference
     return [] if dataset == ref else [f"{DATA_DIR.format(dataset=ref)}/{tensor.META_FILE}"]
 
 
-def generate_demo(config: dict, dataset: str, out_dir: Path | str) -> list[Path]:
-    """Writes the demo raw files of `dataset` into `out_dir` (see prep.demo)."""
+def generate_demo(cfg: DatasetConfig, dataset: str, out_dir: Path | str) -> list[Path]:
+    """Writes the demo raw files of `dataset` (typed section `cfg`) into `out_dir` (see prep.demo)."""
     from prep.demo import generate
 
-    files = generate(dataset, dataset_config(config, dataset), Path(out_dir))
+    files = generate(dataset, cfg, Path(out_dir))
     log.info("%s demo: wrote %d raw file(s) to %s", dataset, len(files), out_dir)
     return files
 
@@ -58,12 +57,12 @@ def _collect(paths: list[str]) -> list[Path]:
     return out
 
 
-def prepare_dataset(config: dict, dataset: str, *, raw: list[str], out_dir: Path | str,
+def prepare_dataset(cfg: DatasetConfig, common: CommonPrep, dataset: str, *, raw: list[str], out_dir: Path | str,
                     reference_meta: str | None) -> dict:
     """Prepares one dataset: raw files -> demand.parquet + meta.json in `out_dir` (atomically).
 
     Args:
-        config: the full config dict.
+        cfg: the dataset's typed section (``datasets.<dataset>``); common: ``datasets.common``.
         dataset: "milan", "shanghai" or "yjmob".
         raw: raw files and/or directories holding them.
         out_dir: results/data/{dataset}.
@@ -71,8 +70,6 @@ def prepare_dataset(config: dict, dataset: str, *, raw: list[str], out_dir: Path
     Returns:
         The written meta dict.
     """
-    cfg = dataset_config(config, dataset)
-    common = common_config(config)
     paths = _collect(raw)
     if not paths:
         raise PrepError(f"{dataset}: no raw file found in {raw}")

@@ -132,7 +132,7 @@ def write(out_dir: Path | str, demand: np.ndarray, meta: dict) -> None:
 
 @dataclass(frozen=True, kw_only=True)
 class GridSpec:
-    """Grid of the tensor (dswm.env.Grid-compatible fields)."""
+    """Grid of the tensor (the fields of dswm.sim.core.Grid; ``dswm.sim.core.grid_of`` converts it)."""
 
     rows: int
     cols: int

@@ -3,13 +3,13 @@
 
 rule calibrate:
     input:
-        tensor=expand(rules.prepare.output.tensor, dataset=config["calibration"]["dataset"]),
-        meta=expand(rules.prepare.output.meta, dataset=config["calibration"]["dataset"]),
+        tensor=expand(rules.prepare.output.tensor, dataset=SETTINGS.calibration.dataset),
+        meta=expand(rules.prepare.output.meta, dataset=SETTINGS.calibration.dataset),
     output:
         report="results/calibration/demand_intensity.json",
     params:
-        calibration=config["calibration"],
-        scenario={k: v for k, v in config["scenario"].items() if k != "demand_intensity"},
+        # scenario.demand_intensity is what this job computes: writing its value back reruns nothing.
+        settings=S.param(S.calibrate_slice(SETTINGS)),
     log:
         "logs/calibrate.log",
     benchmark:

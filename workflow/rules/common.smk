@@ -1,43 +1,34 @@
-# Helpers shared by the rule files (config validation and resolution, wildcard constraints, target lists).
+# Helpers shared by the rule files: the settings, resolved once here, and the target lists.
+# Every rule passes its job exactly the slice of settings the job reads (`params.settings`, canonical JSON with
+# sorted keys): that slice is the job's rerun trigger. `params.display` (how a job reports) is a typed object,
+# which Snakemake does not compare, so changing it reruns nothing. Scripts never read `snakemake.config`.
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
 
-from dswm import controllers, runconfig
-from dswm.config import ConfigError, Scenario
-
-SCHEMA = Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml"
-
+from dswm import settings as S
+from dswm.config import ConfigError
 
 # Bad config stops the run here, before any job: the message names the key and the expected form.
 try:
-    runconfig.validate_config(config, runconfig.load_schema(SCHEMA))
-    validate(config, schema=str(SCHEMA), set_default=False)
-    RUN = runconfig.resolve(config)
-    Scenario.from_dict(RUN["scenario"])   # the constants' cross-key checks (e.g. obs_window < slots_per_day)
-    runconfig.check_profile_datasets(RUN)
-    METHOD_CLASSES = controllers.check_methods(RUN)
-    TRAIN_SOURCE = controllers.training_sources(RUN)
-    runconfig.check_raw_files(RUN, Path.cwd())
+    SETTINGS = S.resolve(config, root=Path.cwd(), schema=Path(workflow.basedir) / "workflow" / "schemas" /
+                         "config.schema.yaml")
 except ConfigError as err:
     raise WorkflowError(str(err)) from None
 
-PROFILE = RUN["profile"]
-DATASETS = list(RUN["run"]["datasets"])
-MAIN_DATASET = RUN["tables"]["main_dataset"]
+PROFILE = SETTINGS.profile
+DATASETS = list(SETTINGS.run.datasets)
+MAIN_DATASET = SETTINGS.tables.main_dataset
 """The dataset of Table III (`results/tables/<main_dataset>_main.*`); one the profile evaluates."""
-if MAIN_DATASET not in DATASETS:
-    raise WorkflowError(f"config.yaml: key 'tables.main_dataset' is {MAIN_DATASET!r}, which profile {PROFILE!r} "
-                        f"does not run (profiles.{PROFILE}.datasets: {', '.join(DATASETS)})")
-METHODS = list(RUN["methods"]["run"])
-TRAINED = [m for m in METHODS if TRAIN_SOURCE.get(m) == m]
+METHODS = list(SETTINGS.methods)
+TRAINED = SETTINGS.trained()
 """The learning methods the `train` rule fits; every other learning method evaluates its source's model."""
 TRAINED_PATTERN = "|".join(TRAINED) or "(?!)"
 """The `train` rule's method constraint: a model.pt of a method that shares a training cannot be requested."""
+DISPLAY = SETTINGS.display
 
 
 wildcard_constraints:
@@ -48,7 +39,7 @@ wildcard_constraints:
 
 def learns(method):
     """True for methods trained by the `train` rule before evaluation."""
-    return method in METHOD_CLASSES and METHOD_CLASSES[method].learns
+    return method in SETTINGS.methods and SETTINGS.methods[method].learns
 
 
 def trained_model(wildcards):
@@ -56,7 +47,7 @@ def trained_model(wildcards):
     learn). A method whose training is identical to an earlier one's evaluates that method's model."""
     if not learns(wildcards.method):
         return {}
-    source = {**dict(wildcards.items()), "method": TRAIN_SOURCE[wildcards.method]}
+    source = {**dict(wildcards.items()), "method": SETTINGS.methods[wildcards.method].training_source}
     return {
         "model": rules.train.output.model.format(**source),
         "manifest": rules.train.output.manifest.format(**source),
@@ -67,17 +58,14 @@ def train_manifests():
     """The training manifest of every train job of the selected profile (one per training source and seed)."""
     return [
         rules.train.output.manifest.format(dataset=d, method=m, seed=s)
-        for d, m, s in runconfig.jobs(RUN)
+        for d, m, s in SETTINGS.jobs()
         if m in TRAINED
     ]
 
 
 def result_files():
     """Every per-day result file of the selected profile."""
-    return [
-        rules.evaluate.output.days.format(dataset=d, method=m, seed=s)
-        for d, m, s in runconfig.jobs(RUN)
-    ]
+    return [rules.evaluate.output.days.format(dataset=d, method=m, seed=s) for d, m, s in SETTINGS.jobs()]
 
 
 def meta_files():
@@ -85,19 +73,15 @@ def meta_files():
     return {d: rules.prepare.output.meta.format(dataset=d) for d in DATASETS}
 
 
-def train_params(wildcards):
-    """What a training job depends on besides its input files: its training identity, not planner settings."""
-    return controllers.training_rerun_params(RUN, wildcards.method)
+def raw_files(dataset):
+    """The raw input files of `dataset` (its demo directory, or its published files)."""
+    from prep.pipeline import raw_inputs
+
+    return raw_inputs(getattr(SETTINGS.datasets, dataset), dataset)
 
 
-def job_params(wildcards):
-    """What an evaluation job depends on besides its input files (a change reruns it)."""
-    return {
-        "profile": PROFILE,
-        "eval_days": RUN["run"]["eval_days"],
-        "scenario": RUN["scenario"],
-        "evaluation": RUN["evaluation"],
-        "method": {k: v for k, v in RUN["methods"].items() if k == wildcards.method},
-        "user": RUN["methods"]["user"].get(wildcards.method, {}),
-        "dswm": RUN.get("dswm", {}) if learns(wildcards.method) else {},
-    }
+def reference_meta(dataset):
+    """meta.json of the kappa reference dataset, for every other dataset (docs/PROTOCOL.md §4)."""
+    from prep.pipeline import reference_input
+
+    return reference_input(SETTINGS.datasets.common, dataset)

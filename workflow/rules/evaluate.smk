@@ -11,7 +11,8 @@ rule evaluate:
         days="results/{dataset}/{method}/seed{seed}/days.parquet",
         trajectory="results/{dataset}/{method}/seed{seed}/trajectory.npz",
     params:
-        job=job_params,
+        settings=lambda wc: S.param(S.evaluate_slice(SETTINGS, wc.method)),
+        display=S.Untracked(DISPLAY),
     log:
         "logs/evaluate/{dataset}/{method}/seed{seed}.log",
     benchmark:

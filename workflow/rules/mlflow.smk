@@ -5,9 +5,7 @@ rule mlflow_init:
     output:
         marker="results/mlflow/experiment.json",
     params:
-        store=config["mlflow"]["store"],
-        artifacts=config["mlflow"]["artifacts"],
-        experiment=config["mlflow"]["experiment"],
+        settings=S.param(S.mlflow_slice(SETTINGS)),
     log:
         "logs/mlflow_init.log",
     script:

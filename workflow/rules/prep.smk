@@ -1,12 +1,11 @@
-# Data preparation (SPEC section 4): demo raw files, demand tensors, exploratory statistics.
-from prep.pipeline import raw_inputs, reference_input
+# Data preparation (docs/PROTOCOL.md §4): demo raw files, demand tensors, exploratory statistics.
 
 
 rule demo_raw:
     output:
         raw=directory("results/raw/{dataset}/demo"),
     params:
-        settings=lambda wc: config["datasets"][wc.dataset],
+        settings=lambda wc: S.param(S.prep_slice(SETTINGS, wc.dataset)),
     log:
         "logs/prep/demo_raw_{dataset}.log",
     benchmark:
@@ -17,13 +16,13 @@ rule demo_raw:
 
 rule prepare:
     input:
-        raw=lambda wc: raw_inputs(config, wc.dataset),
-        reference=lambda wc: reference_input(config, wc.dataset),
+        raw=lambda wc: raw_files(wc.dataset),
+        reference=lambda wc: reference_meta(wc.dataset),
     output:
         tensor="results/data/{dataset}/demand.parquet",
         meta="results/data/{dataset}/meta.json",
     params:
-        settings=lambda wc: {"dataset": config["datasets"][wc.dataset], "common": config["datasets"]["common"]},
+        settings=lambda wc: S.param(S.prep_slice(SETTINGS, wc.dataset)),
     log:
         "logs/prep/prepare_{dataset}.log",
     benchmark:
@@ -39,6 +38,8 @@ rule eda:
     output:
         stats="results/eda/{dataset}/eda.json",
         figure="results/eda/{dataset}/eda.png",
+    params:
+        settings=S.param(S.eda_slice(SETTINGS)),
     log:
         "logs/prep/eda_{dataset}.log",
     script:

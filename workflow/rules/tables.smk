@@ -15,10 +15,7 @@ rule tables:
         cross_tex="results/tables/cross_dataset.tex",
         cross_csv="results/tables/cross_dataset.csv",
     params:
-        profile=PROFILE,
-        tables=config["tables"],
-        methods=METHODS,
-        datasets=DATASETS,
+        settings=S.param(S.tables_slice(SETTINGS)),
     log:
         "logs/tables.log",
     script:

@@ -11,7 +11,8 @@ rule train:
         model="results/{dataset}/{method}/seed{seed}/model.pt",
         manifest="results/{dataset}/{method}/seed{seed}/train_manifest.json",
     params:
-        job=train_params,
+        settings=lambda wc: S.param(S.train_slice(SETTINGS, wc.method)),
+        evaluated_as=lambda wc: S.Untracked(S.evaluated_as(SETTINGS, wc.method)),
         run_dir=lambda wc: f"results/{wc.dataset}/{wc.method}/seed{wc.seed}/train",
     log:
         "logs/train/{dataset}/{method}/seed{seed}.log",

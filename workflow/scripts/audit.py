@@ -8,10 +8,12 @@ logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(message)s")
 
 from audits.report import to_markdown, write_atomic, write_report
 from audits.runner import gate, run_audit
+from dswm.settings import Settings, read_param
 
 if snakemake.rule == "audit_report":  # noqa: F821
-    report = run_audit(root=Path.cwd(), config=snakemake.config,  # noqa: F821
-                       extra_reads=[Path(f) for f in snakemake.params.configfiles])  # noqa: F821
+    settings = Settings.from_plain(read_param(snakemake.params.settings))  # noqa: F821
+    report = run_audit(root=Path.cwd(), settings=settings,
+                       extra_reads=[Path(f) for f in snakemake.params.configfiles.value])  # noqa: F821
     write_report(report, json_path=snakemake.output.json, md_path=snakemake.output.md)  # noqa: F821
     print(to_markdown(report).split("## Evidence")[0], file=sys.stderr)
 else:

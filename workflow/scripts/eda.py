@@ -6,12 +6,12 @@ from pathlib import Path
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (Snakemake injects `snakemake`)
 logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
 
-from prep.config import common_config  # noqa: E402
+from dswm.settings import read_param  # noqa: E402
 from prep.eda import run_eda  # noqa: E402
 from prep.tensor import load  # noqa: E402
 
+job = read_param(snakemake.params.settings)  # noqa: F821
 summary = run_eda(load(Path(snakemake.input.meta).parent), json_path=snakemake.output.stats,  # noqa: F821
-                  png_path=snakemake.output.figure,  # noqa: F821
-                  top_frac=common_config(snakemake.config).top_share_frac)  # noqa: F821
+                  png_path=snakemake.output.figure, top_frac=float(job["top_share_frac"]))  # noqa: F821
 logging.info("eda %s: zero_cell_rate=%.4f top5_share=%.4f hotspot_overlap_04h_14h=%.2f", summary["dataset"],
              summary["zero_cell_rate"], summary["top5_share"], summary["hotspot_overlap_04h_14h"])

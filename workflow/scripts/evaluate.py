@@ -4,11 +4,11 @@ from pathlib import Path
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
-from dswm.jobs import evaluate_job
+from dswm.pipeline.jobs import evaluate_job
+from dswm.settings import read_param
 
-w, inp = snakemake.wildcards, snakemake.input  # noqa: F821
-evaluate_job(config=snakemake.config, tensor_dir=Path(inp.tensor).parent, dataset=w.dataset,  # noqa: F821
-             method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
+w, inp, p = snakemake.wildcards, snakemake.input, snakemake.params  # noqa: F821
+evaluate_job(job=read_param(p.settings), display=p.display.value, tensor_dir=Path(inp.tensor).parent,
+             dataset=w.dataset, method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
              trajectory_out=snakemake.output.trajectory, model=inp.get("model"),  # noqa: F821
-             manifest=inp.get("manifest"),
-             repo=snakemake.scriptdir + "/../..")  # noqa: F821
+             manifest=inp.get("manifest"), repo=snakemake.scriptdir + "/../..")  # noqa: F821

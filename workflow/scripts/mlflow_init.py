@@ -3,10 +3,11 @@ import sys
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
-from dswm.atomic import write_json
-from dswm.tracking import init_store
+from prep.atomic import write_json
+from dswm.pipeline.tracking import init_store
+from dswm.settings import read_param
 
-p = snakemake.params  # noqa: F821
-info = init_store(store=p.store, artifacts=p.artifacts, experiment=p.experiment)
+job = read_param(snakemake.params.settings)  # noqa: F821
+info = init_store(store=job["store"], artifacts=job["artifacts"], experiment=job["experiment"])
 print(f"MLflow experiment {info['experiment']!r} (id {info['experiment_id']}) in {info['tracking_uri']}", file=sys.stderr)
 write_json(snakemake.output.marker, info)  # noqa: F821

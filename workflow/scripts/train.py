@@ -4,10 +4,11 @@ from pathlib import Path
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
-from dswm.jobs import train_job
+from dswm.pipeline.jobs import train_job
+from dswm.settings import read_param
 
-w = snakemake.wildcards  # noqa: F821
-train_job(config=snakemake.config, tensor_dir=Path(snakemake.input.tensor).parent,  # noqa: F821
-          dataset=w.dataset, method=w.method, seed=int(w.seed), model_out=snakemake.output.model,  # noqa: F821
-          manifest_out=snakemake.output.manifest, run_dir=snakemake.params.run_dir,  # noqa: F821
-          repo=snakemake.scriptdir + "/../..")  # noqa: F821
+w, p = snakemake.wildcards, snakemake.params  # noqa: F821
+train_job(job=read_param(p.settings), evaluated_as=p.evaluated_as.value,
+          tensor_dir=Path(snakemake.input.tensor).parent, dataset=w.dataset, method=w.method,  # noqa: F821
+          seed=int(w.seed), model_out=snakemake.output.model, manifest_out=snakemake.output.manifest,  # noqa: F821
+          run_dir=p.run_dir, repo=snakemake.scriptdir + "/../..")  # noqa: F821

@@ -4,7 +4,7 @@ Base stations cluster around the city centre (a Gaussian core) with the rest spr
 each user has a home station and, for most, a work station in the core. Session starts follow a
 time-of-day profile of mobile internet use (low at night, evening peak); on working days employed users are
 at work during office hours, on Saturdays and Sundays they stay near home, so the weekend shifts demand in
-space. Sessions sit on stations only, so after 470 m gridding most cells are empty (SPEC 4: ~85% zero
+space. Sessions sit on stations only, so after 470 m gridding most cells are empty (docs/PROTOCOL.md §4: ~85% zero
 cells in the crop). Real-world dirt is injected at the configured rates: blank and 0/0 locations, end
 before start; sessions crossing midnight occur naturally.
 """

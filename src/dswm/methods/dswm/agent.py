@@ -6,7 +6,7 @@ profile (``profile:`` of the resolved config) selects ``dswm.budgets.<profile>``
 gradient steps and any planner-size reductions.
 
 Per slot (Algorithm 1): filter o_t into the posterior, then CEM over H-slot sequences scored by
-``ImaginationScorer`` (anchored imagined demand, fleet propagated by ``dswm.fleet``, service head), and
+``ImaginationScorer`` (anchored imagined demand, fleet propagated by ``dswm.sim.fleet``, service head), and
 execute the first action of the best sequence; the CEM mean is carried to the next slot (warm start). With
 ``planner.proposal: bcd`` the population is seeded with a block-coordinate-descent move (the greedy
 baseline's search, as strong as the oracle's) on the ANCHORED IMAGINED next-slot map, i.e. on what the world
@@ -14,101 +14,25 @@ model expects, never on the true next map; ``dswm_wo_dec`` has no proposal (it h
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 import torch
 
-from dswm.atomic import atomic_path
-from dswm.config import stable_hash
-from dswm.controllers import Controller, DayContext
-from dswm.core import Grid, fleet_state_from_obs
-from dswm.physics import ServiceParams
-from dswm.planner import PROPOSALS, AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, anchor
-from dswm.rssm import RSSMConfig
-from dswm.training import TrainConfig, collect, save_training_figure, train
-from dswm.world_model import WorldModel, WorldModelConfig
-
-METHODS = ("dswm", "dswm_wo_unc", "dswm_wo_dec")
-_RSSM_KEYS = {f.name for f in dataclasses.fields(RSSMConfig)} - {"action_dim"}
-
-
-def _merge(base: Mapping[str, Any], over: Mapping[str, Any] | None) -> dict:
-    out = copy.deepcopy(dict(base))
-    for k, v in (over or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
-    return out
-
-
-def _build(cls, data: Mapping[str, Any], where: str, **fixed):
-    """Dataclass ``cls`` from a config mapping; unknown or missing keys raise naming the config key."""
-    names = {f.name for f in dataclasses.fields(cls)} - set(fixed)
-    unknown, missing = sorted(set(data) - names), sorted(names - set(data))
-    if unknown or missing:
-        raise ValueError(f"config.yaml: key '{where}': unknown keys {unknown}, missing keys {missing} "
-                         f"(expected exactly {sorted(names)})")
-    return cls(**dict(data), **fixed)
-
-
-@dataclasses.dataclass(frozen=True)
-class DSWMSettings:
-    """Resolved settings of one method under one profile."""
-
-    world_model: dict
-    training: TrainConfig
-    planner: PlannerConfig
-    transitions: int
-    steps: int
-    device: str
-
-    def wm_config(self, n_uavs: int) -> WorldModelConfig:
-        wm = dict(self.world_model)
-        rssm = RSSMConfig(action_dim=3 * n_uavs, **{k: wm.pop(k) for k in _RSSM_KEYS})
-        return _build(WorldModelConfig, wm, "dswm.world_model", rssm=rssm)
-
-
-def settings(dswm_cfg: Mapping[str, Any], *, method: str, profile: str) -> DSWMSettings:
-    """Resolve config.yaml's ``dswm`` section for ``method`` under ``profile``.
-
-    Method overrides (``dswm.methods.<method>``) and the profile's planner reductions
-    (``dswm.budgets.<profile>.planner``) are merged over the base sections.
-    """
-    if method not in METHODS:
-        raise ValueError(f"DSWMController: method must be one of {METHODS}, found {method!r}")
-    budgets = dswm_cfg["budgets"]
-    if profile not in budgets:
-        raise ValueError(f"config.yaml: key 'dswm.budgets' has no entry {profile!r} (found {sorted(budgets)})")
-    over = dswm_cfg["methods"].get(method) or {}
-    budget = budgets[profile]
-    wm = _merge(dswm_cfg["world_model"], over.get("world_model"))
-    planner = _merge(_merge(dswm_cfg["planner"], budget.get("planner")), over.get("planner"))
-    planner["proposal_bw_logits"] = tuple(float(v) for v in planner.get("proposal_bw_logits", ()))
-    if planner.get("proposal") not in PROPOSALS:
-        raise ValueError(f"config.yaml: key 'dswm.planner.proposal' must be one of {PROPOSALS}, "
-                         f"found {planner.get('proposal')!r}")
-    planner_cfg = _build(PlannerConfig, planner, "dswm.planner")
-    # The one cross-key check the schema cannot make: it sees each section, not the merged planner.
-    if not 1 <= planner_cfg.n_elites <= planner_cfg.n_samples:
-        raise ValueError(f"config.yaml: key 'dswm.planner.n_elites' must lie in [1, n_samples] (after the "
-                         f"'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides); found "
-                         f"n_elites={planner_cfg.n_elites}, n_samples={planner_cfg.n_samples}")
-    return DSWMSettings(world_model=wm,
-                        training=_build(TrainConfig, _merge(dswm_cfg["training"], over.get("training")),
-                                        "dswm.training"),
-                        planner=planner_cfg,
-                        transitions=int(budget["transitions"]), steps=int(budget["steps"]),
-                        device=str(dswm_cfg["device"]))
-
-
-def training_hash(s: DSWMSettings, budget: Mapping[str, Any]) -> str:
-    """Hash of everything that shapes training: world model, training section and budget (not the planner)."""
-    return stable_hash({"world_model": s.world_model, "training": dataclasses.asdict(s.training),
-                        "budget": dict(budget)})
+from dswm.config import ConfigError, stable_hash, to_plain
+from dswm.methods.base import Controller, DayContext
+from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, anchor
+from dswm.methods.dswm.settings import METHODS, DSWMSettings, resolve
+from dswm.methods.dswm.training import collect, save_training_figure, train
+from dswm.methods.dswm.world_model import WorldModel
+from dswm.methods.search import SearchSettings, bcd_search, to_action
+from dswm.sim.core import Grid, fleet_state_from_obs
+from dswm.sim.physics import ServiceParams
+from prep.atomic import atomic_path
 
 
 def training_inputs_hash(core, day_ids: np.ndarray) -> str:
@@ -121,90 +45,87 @@ def training_inputs_hash(core, day_ids: np.ndarray) -> str:
 
 
 class BCDProposal:
-    """The "bcd" proposal: the greedy baseline's block-coordinate descent (``dswm.baselines``), pointed at the
-    anchored imagined next-slot map instead of the observed one, with the bandwidth logits searched too."""
+    """The "bcd" proposal: the project's block-coordinate-descent search (``dswm.methods.search``) on the
+    anchored imagined next-slot map, with the planner's proposal search settings."""
 
-    def __init__(self, *, sweeps: int, lattice: int, refine: int, bw_logits: tuple):
-        from dswm.baselines import GreedyController
-
-        class _AnchoredBCD(GreedyController):
-            def target_demand(self, obs):
-                return self.target
-
-        self.bcd = _AnchoredBCD(name="dswm-proposal", sweeps=sweeps, lattice=lattice, refine=refine)
-        self.bcd.bw_logits = tuple(sorted(bw_logits, key=abs))   # 0 first: ties keep the proportional split
+    def __init__(self, search: SearchSettings):
+        self.search = search
 
     def reset(self, ctx: DayContext) -> None:
-        self.bcd.reset_batch([ctx])
+        self.grid, self.scenario, self.geom = ctx.grid, ctx.scenario, ctx.geometry
+        self.cells = torch.as_tensor(ctx.cells, dtype=torch.float32)
+        self.params = ServiceParams.from_scenario(ctx.scenario)
 
     def __call__(self, obs: Mapping[str, Any], target: torch.Tensor) -> torch.Tensor:
         """(K, 3) move for one observation, scored on ``target`` (G,)."""
-        self.bcd.target = target.reshape(1, -1).float().cpu()
-        return torch.as_tensor(self.bcd.act_batch({k: np.asarray(v)[None] for k, v in obs.items()})[0])
+        state = fleet_state_from_obs(np.asarray(obs["fleet"])[None], self.grid, self.scenario)
+        with torch.no_grad():
+            plan, logit = bcd_search(state, target.reshape(1, -1).float().cpu(), search=self.search,
+                                     cells=self.cells, geom=self.geom, scenario=self.scenario, params=self.params)
+        move = to_action(plan, state.pos, self.scenario.d_max_m)
+        return torch.cat([move, logit.unsqueeze(-1)], dim=-1)[0]
 
 
 class DSWMController(Controller):
     """Decision-time planner over a learned world model (see module docstring)."""
 
     learns = True
+    shares_training = True
+    options_type: ClassVar[type] = DSWMSettings
 
-    def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", settings: DSWMSettings):
-        super().__init__(name=name, seed=seed, device=device)
-        self.settings = settings
+    def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: DSWMSettings):
+        if name not in METHODS:
+            raise ConfigError(f"DSWMController: method must be one of {METHODS}, found {name!r}")
+        super().__init__(name=name, seed=seed, device=options.device, options=options)
+        self.settings = options
         self.model: WorldModel | None = None
         self.plan_ms: list[float] = []
 
     @classmethod
-    def from_config(cls, *, name: str, config: Mapping[str, Any], seed: int) -> "DSWMController":
-        s = settings(config["dswm"], method=name, profile=config["profile"])
-        return cls(name=name, seed=seed, device=s.device, settings=s)
+    def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> DSWMSettings:
+        """config.yaml's ``dswm`` section merged for ``name`` and ``profile`` (``dswm.methods.dswm.settings``)."""
+        return resolve(config["dswm"], method=name, profile=profile)
 
     @classmethod
-    def budget_from_config(cls, *, name: str, config: Mapping[str, Any]) -> dict:
-        s = settings(config["dswm"], method=name, profile=config["profile"])
-        return {"transitions": s.transitions, "steps": s.steps}
+    def training_settings(cls, options: DSWMSettings) -> DSWMSettings:
+        """Everything but the planner: ``dswm_wo_unc`` (a planner override only) trains what ``dswm`` trains;
+        ``dswm_wo_dec`` (a world-model override) does not."""
+        return dataclasses.replace(options, planner=None)
 
-    @classmethod
-    def training_identity(cls, *, name: str, config: Mapping[str, Any]) -> str:
-        """:func:`training_hash` of the method under the selected profile: ``dswm_wo_unc`` (a planner override
-        only) trains what ``dswm`` trains; ``dswm_wo_dec`` (a world-model override) does not."""
-        s = settings(config["dswm"], method=name, profile=config["profile"])
-        return training_hash(s, cls.budget_from_config(name=name, config=config))
-
-    def settings_hash(self, budget: Mapping[str, Any]) -> str:
-        """:func:`training_hash` of this controller (a checkpoint resumes only under the same hash)."""
-        return training_hash(self.settings, budget)
+    def settings_hash(self) -> str:
+        """Hash of this controller's training settings (a checkpoint resumes only under the same hash)."""
+        return stable_hash(to_plain(self.training_settings(self.settings)))
 
     # ---- model construction ---------------------------------------------------------------------------
     def _build_model(self, grid: Grid, scenario) -> WorldModel:
         self.grid, self.scenario = grid, scenario
         self.params = ServiceParams.from_scenario(scenario)
-        model = WorldModel(cfg=self.settings.wm_config(scenario.n_uavs), rows=grid.rows, cols=grid.cols,
+        model = WorldModel(cfg=self.settings.world_model, rows=grid.rows, cols=grid.cols,
                            n_uavs=scenario.n_uavs, window=scenario.obs_window + 1,
                            cells=grid.cells(), params=self.params)
         return model.to(self.device)
 
-    def fit(self, train_core, *, budget: Mapping[str, Any], run_dir) -> dict:
+    def fit(self, train_core, *, run_dir) -> dict:
         """Pre-collect on the TRAINING-days core, train the world model, checkpoint; return the manifest."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         day_ids = np.asarray(getattr(train_core, "day_ids", range(train_core.n_days)), dtype=np.int64)
         torch.manual_seed(self.seed)
-        replay = collect(train_core, n_transitions=int(budget["transitions"]), cfg=self.settings.training,
+        replay = collect(train_core, n_transitions=self.settings.transitions, cfg=self.settings.training,
                          seed=self.seed, day_ids=day_ids)
         self.model = self._build_model(train_core.grid, train_core.scenario)
         self.model.set_normalizer(replay.demand)
         ckpt = run_dir / "checkpoint.pt"
         # A checkpoint resumes only the same run: same settings AND the same training data, scenario and days
         # (a rerun after the tensor or the scenario changed trains from scratch).
-        history = train(self.model, replay, steps=int(budget["steps"]), cfg=self.settings.training,
+        history = train(self.model, replay, steps=self.settings.steps, cfg=self.settings.training,
                         seed=self.seed, checkpoint=ckpt, resume=True,
-                        extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(budget),
+                        extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(),
                                "inputs": training_inputs_hash(train_core, day_ids)})
         save_training_figure(history, run_dir / "training_diagnostics.png")
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,
-                "n_transitions": replay.n_transitions, "steps": int(budget["steps"]),
+                "n_transitions": replay.n_transitions, "steps": self.settings.steps,
                 "checkpoint": str(ckpt),
                 "checkpoint_written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ckpt.stat().st_mtime)),
                 "read_test_data": False, "history": history}
@@ -231,6 +152,8 @@ class DSWMController(Controller):
     def reset(self, ctx: DayContext) -> None:
         if self.model is None:
             raise RuntimeError(f"{self.name}: reset() before fit() or load()")
+        if self.settings.planner is None:
+            raise RuntimeError(f"{self.name}: built with training settings only (no planner); it cannot act")
         g = ctx.grid
         if (g.rows, g.cols) != (self.model.rows, self.model.cols):
             raise ValueError(f"{self.name}: model trained on a {self.model.rows}x{self.model.cols} grid, "
@@ -248,8 +171,7 @@ class DSWMController(Controller):
         self.planner.reset(ctx.day)
         self.proposal = None
         if cfg.proposal == "bcd":
-            self.proposal = BCDProposal(sweeps=cfg.proposal_sweeps, lattice=cfg.proposal_lattice,
-                                        refine=cfg.proposal_refine, bw_logits=cfg.proposal_bw_logits)
+            self.proposal = BCDProposal(cfg.proposal_search())
             self.proposal.reset(ctx)
 
     def _proposals(self, obs: Mapping[str, Any], x_now: torch.Tensor) -> torch.Tensor | None:

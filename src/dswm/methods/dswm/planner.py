@@ -4,8 +4,8 @@ Two parts:
 - ``cem``: a generic cross-entropy-method core over action sequences (N, H, *A) in [-1, 1].
 - ``ImaginationScorer``: J(a_{t:t+H-1}) = sum_tau gamma^(tau-t) (SR_hat_tau - lambda_u u_tau) for a batch of N
   candidates in one tensor pass per imagined step: RSSM prior rollout, demand ensemble anchored on the
-  observed map (rho), fleet positions and batteries propagated by ``dswm.fleet.fleet_step`` (the environment's
-  own kinematics and battery rules), served ratio by the world model's service head (``dswm.physics``).
+  observed map (rho), fleet positions and batteries propagated by ``dswm.sim.fleet.fleet_step`` (the environment's
+  own kinematics and battery rules), served ratio by the world model's service head (``dswm.sim.physics``).
   With ``demand_override`` the true future maps replace the model's (no anchoring, no uncertainty), so the
   score is exactly the discounted SR the environment would realize.
 ``AnchoredCEMPlanner`` keeps the warm start (previous slot's mean, shifted by one step) between slots.
@@ -16,20 +16,21 @@ Design choices beyond Algorithm 1 (config.yaml ``dswm.planner`` gives the eviden
 - ``continuation="lloyd"``: later imagined steps add their sampled move to a Lloyd step, so imagined UAVs keep
   repositioning (e.g. fly back to demand after charging) instead of freezing;
 - the population can be seeded with proposals (``AnchoredCEMPlanner.plan(proposals=...)``); the controller
-  passes a block-coordinate-descent move on the anchored imagined next map (``dswm.agent.BCDProposal``).
+  passes a block-coordinate-descent move on the anchored imagined next map (``dswm.methods.dswm.agent.BCDProposal``).
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple
+from typing import Callable, Literal, NamedTuple
 
 import torch
 
-from dswm.config import Scenario
-from dswm.fleet import FleetState, Geometry, available, fleet_step
-from dswm.physics import ServiceParams, service, sum_per_uav
-from dswm.rssm import LatentState, map_state
+from dswm.sim.scenario import Scenario
+from dswm.methods.search import SearchSettings
+from dswm.sim.fleet import FleetState, Geometry, available, fleet_step
+from dswm.sim.physics import ServiceParams, service, sum_per_uav
+from dswm.methods.dswm.rssm import LatentState, map_state
 
 PROPOSALS = ("none", "bcd")
 CONTINUATIONS = ("hold", "lloyd")
@@ -61,9 +62,9 @@ class PlannerConfig:
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
     warm_start: bool
     """Start from the previous slot's mean shifted by one step (else from 0 = hold, proportional split)."""
-    continuation: str
+    continuation: Literal["hold", "lloyd"]
     """"hold" or "lloyd": how imagined steps after the first act (see ``ImaginationScorer``)."""
-    proposal: str
+    proposal: Literal["none", "bcd"]
     """"none" or "bcd": seed the population with a block-coordinate-descent move on the anchored map."""
     proposal_sweeps: int
     """BCD passes over the UAVs of the proposal."""
@@ -71,10 +72,15 @@ class PlannerConfig:
     """Points per axis of the proposal's displacement lattice (odd)."""
     proposal_refine: int
     """Rounds of half-spacing refinement of each UAV's lattice point in the proposal."""
-    proposal_bw_logits: tuple
+    proposal_bw_logits: tuple[float, ...]
     """Bandwidth logits the proposal searches per UAV (must include 0)."""
-    compile: bool = False
+    compile: bool
     """Run the imagined steps compiled by ``torch.compile`` (``ImaginationScorer``)."""
+
+    def proposal_search(self) -> SearchSettings:
+        """The strength of the "bcd" proposal's search (``dswm.methods.search``)."""
+        return SearchSettings(sweeps=self.proposal_sweeps, lattice=self.proposal_lattice,
+                              refine=self.proposal_refine, bw_logits=self.proposal_bw_logits)
 
 
 class CEMResult(NamedTuple):

@@ -1,4 +1,4 @@
-"""Per-day evaluation of one controller on the fixed ID and OOD days of a dataset (SPEC sections 3 and 6).
+"""Per-day evaluation of one controller on the fixed ID and OOD days of a dataset (docs/PROTOCOL.md §3, §6).
 
 Every method runs the same days through the same ``FleetCore`` from the same initial state (demand-weighted
 K-means of the mean TRAINING map; batteries drawn from (dataset, day) alone). A day's score is the mean of
@@ -21,10 +21,11 @@ import polars as pl
 import torch
 from tqdm import tqdm
 
-from dswm.atomic import atomic_path
-from dswm.config import Scenario, stable_hash
-from dswm.controllers import Controller, DayContext
-from dswm.core import FleetCore, Grid, initial_positions, obs_spec_hash
+from prep.atomic import atomic_path
+from dswm.config import stable_hash
+from dswm.sim.scenario import Scenario
+from dswm.methods.base import Controller, DayContext
+from dswm.sim.core import core_from_tensor, obs_spec_hash
 
 DAY_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
@@ -69,12 +70,6 @@ def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str
     return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in ("id", "ood")}})
 
 
-def initial_deployment(tensor, grid: Grid, scenario: Scenario) -> np.ndarray:
-    """(K, 2) demand-weighted K-means of the mean TRAINING map (the same for every method)."""
-    train_mean = tensor.demand[tensor.train_days].mean(axis=(0, 1))
-    return initial_positions(train_mean, grid, scenario.n_uavs, scenario.init.kmeans_seed)
-
-
 def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, limits: Mapping[str, int | None],
              profile: str, device: str = "cpu", batch_days: bool = True, progress_interval_s: float = 5.0,
              trajectory: bool = True) -> EvalResult:
@@ -98,14 +93,11 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
     torch.manual_seed(seed)
     np.random.seed(seed)
     dataset = tensor.meta["dataset"]
-    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
     days = eval_days(tensor, limits)
-    labels = [d["label"] for d in tensor.meta["days"]]
+    labels = tensor.labels
     order = [(s, d) for s in ("id", "ood") for d in days[s]]  # core index i <-> order[i]
-    init_pos = initial_deployment(tensor, grid, scenario)
-    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[[d for _, d in order]]), grid=grid,
-                     scenario=scenario, init_pos=init_pos, dataset=dataset,
-                     day_labels=[labels[d] for _, d in order], device=device)
+    core = core_from_tensor(tensor, scenario, [d for _, d in order], device=device)
+    grid, init_pos = core.grid, core.init_pos.cpu().numpy()
     geometry, cells = grid.geometry(), grid.cells(device=device)
 
     def context(i: int) -> DayContext:

@@ -7,7 +7,7 @@ Loss (eq. 15 plus the ensemble's calibration term), on replayed sequences of len
 - L_cal: the ensemble spread Std_e matches the (stopped) error of the ensemble mean, per cell.
 - L_KL: balanced free-bits KL (``RSSM.kl_loss``).
 - L_LPR: ||g(h_t) - sg[h_bar_{t+1}]||^2 with h_bar from the EMA teacher, plus lambda_var * variance margin.
-- L_serve: (SR_hat_{t+1} - SR_{t+1})^2; SR_hat is ``dswm.physics.served_ratio`` applied to the predicted map
+- L_serve: (SR_hat_{t+1} - SR_{t+1})^2; SR_hat is ``dswm.sim.physics.served_ratio`` applied to the predicted map
   at the replayed next positions (decomposed head), or the SR-MLP on the latent (``dswm_wo_dec``).
 """
 from __future__ import annotations
@@ -15,14 +15,16 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+from typing import Any, Mapping
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from dswm.physics import ServiceParams, associate, served_ratio, service
-from dswm.rssm import RSSM, LatentState, RSSMConfig, map_state
-from dswm.wm_modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symlog,
+from dswm.config import build
+from dswm.sim.physics import ServiceParams, associate, served_ratio, service
+from dswm.methods.dswm.rssm import RSSM, LatentState, RSSMConfig, map_state
+from dswm.methods.dswm.modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symlog,
                              variance_margin)
 
 SERVICE_HEADS = ("physics", "mlp")
@@ -69,6 +71,13 @@ class WorldModelConfig:
     service_head: str
     """"physics" (decomposed head, eq. 16) or "mlp" (the dswm_wo_dec ablation)."""
 
+    @classmethod
+    def from_flat(cls, section: Mapping[str, Any], where: str) -> "WorldModelConfig":
+        """Build from config.yaml's flat ``dswm.world_model`` section: the RSSM's keys go to ``rssm``."""
+        rssm_keys = {f.name for f in dataclasses.fields(RSSMConfig)}
+        rssm = build(RSSMConfig, {k: v for k, v in section.items() if k in rssm_keys}, where)
+        return build(cls, {k: v for k, v in section.items() if k not in rssm_keys}, where, rssm=rssm)
+
 
 class WorldModel(nn.Module):
     """Encoder-RSSM stack with its heads; ``teacher`` is the EMA copy of (encoder, rssm)."""
@@ -84,7 +93,7 @@ class WorldModel(nn.Module):
         r = cfg.rssm
         self.encoder = ObsEncoder(window=window, rows=rows, cols=cols, n_uavs=n_uavs, embed=r.embed,
                                   channels=cfg.enc_channels)
-        self.rssm = RSSM(cfg=r)
+        self.rssm = RSSM(cfg=r, action_dim=3 * n_uavs)
         feat = self.rssm.feat_dim
         self.demand = DemandEnsemble(feat_dim=feat, n_heads=cfg.ensemble, hidden=cfg.demand_hidden,
                                      rank=cfg.demand_rank, n_cells=rows * cols)

@@ -9,24 +9,9 @@ import math
 
 import torch
 
-from dswm.config import Rotor
+from dswm.sim.scenario import Rotor
 
-# Defaults: the published model constants (SPEC section 1), used when no Rotor is given.
-DEFAULT_ROTOR = Rotor(
-    weight_n=20.0,
-    air_density=1.225,
-    rotor_radius_m=0.4,
-    disc_area_m2=0.503,
-    blade_angular_velocity=300.0,
-    tip_speed_mps=120.0,
-    rotor_solidity=0.05,
-    fuselage_drag_ratio=0.6,
-    induced_power_correction=0.1,
-    profile_drag_coefficient=0.012,
-)
-
-
-def rotor_constants(rotor: Rotor = DEFAULT_ROTOR) -> tuple[float, float, float]:
+def rotor_constants(rotor: Rotor) -> tuple[float, float, float]:
     """Blade-profile hover power P0 (W), induced hover power Pi (W) and mean induced velocity v0 (m/s)."""
     rho, s, area = rotor.air_density, rotor.rotor_solidity, rotor.disc_area_m2
     p0 = rotor.profile_drag_coefficient / 8.0 * rho * s * area
@@ -36,7 +21,7 @@ def rotor_constants(rotor: Rotor = DEFAULT_ROTOR) -> tuple[float, float, float]:
     return p0, pi, v0
 
 
-def rotor_power(speed_mps, rotor: Rotor = DEFAULT_ROTOR):
+def rotor_power(speed_mps, rotor: Rotor):
     """Propulsion power at horizontal speed V.
 
     Args:
@@ -59,11 +44,11 @@ def rotor_power(speed_mps, rotor: Rotor = DEFAULT_ROTOR):
     return p0 * (1.0 + blade_k * v2) + pi * induced + drag_k * v2 * v
 
 
-def hover_power(rotor: Rotor = DEFAULT_ROTOR) -> float:
+def hover_power(rotor: Rotor) -> float:
     """P(0) in watts (about 168.48 W with the published constants)."""
     return float(rotor_power(0.0, rotor))
 
 
-def slot_energy(speed_mps, slot_s: float, rotor: Rotor = DEFAULT_ROTOR):
+def slot_energy(speed_mps, slot_s: float, rotor: Rotor):
     """Energy (J) of flying a whole slot of ``slot_s`` seconds at constant speed ``speed_mps``."""
     return rotor_power(speed_mps, rotor) * slot_s

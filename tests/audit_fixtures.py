@@ -6,6 +6,9 @@ raw files in the published Milan and YJMob formats (results/raw/...), the prepar
 one training (dswm trains; dswm_wo_unc evaluates its model), the training manifest and checkpoint, trajectories
 and the calibration record. Test days carry more demand than
 training days, so every training statistic differs from its all-days and test-segment values.
+
+The tree's config is the repository's config.yaml shrunk (`fixture_config`), written as config.json; its
+settings are resolved once from that mapping (`dswm.settings.resolve`) and every writer here reads them typed.
 """
 from __future__ import annotations
 
@@ -21,6 +24,9 @@ from zoneinfo import ZoneInfo
 import numpy as np
 import polars as pl
 import yaml
+
+from dswm.settings import Settings, resolve
+from prep.config import MilanConfig, YJMobConfig
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["static", "greedy", "dswm", "dswm_wo_unc"]
@@ -49,19 +55,18 @@ def fixture_config() -> dict:
     return cfg
 
 
-def _milan_raw(cfg: dict, out: Path, rng: np.random.Generator) -> list[Path]:
+def _milan_raw(m: MilanConfig, out: Path, rng: np.random.Generator) -> list[Path]:
     """Daily Milan files (tab-separated, no header, blank = no activity) for the crop's squares; test days are
     busier, the more so the further east (so the all-days mean map differs in shape from the training one)."""
-    m = cfg["datasets"]["milan"]
-    crop, tz = m["crop"], ZoneInfo(m["timezone"])
-    ids = [(crop["first_row"] + r) * m["full_cols"] + crop["first_col"] + c + 1
-           for r in range(crop["rows"]) for c in range(crop["cols"])]
+    crop, tz = m.crop, ZoneInfo(m.timezone)
+    ids = [(crop.first_row + r) * m.full_cols + crop.first_col + c + 1
+           for r in range(crop.rows) for c in range(crop.cols)]
     base = rng.gamma(2.0, 50.0, len(ids))
-    east = np.array([c for r in range(crop["rows"]) for c in range(crop["cols"])]) / max(crop["cols"] - 1, 1)
+    east = np.array([c for r in range(crop.rows) for c in range(crop.cols)]) / max(crop.cols - 1, 1)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for seg, factor in (("train", 1.0), ("test", 1.7)):
-        a, b = (dt.date.fromisoformat(s) for s in m["split"][seg])
+    for seg, factor in ((m.split.train, 1.0), (m.split.test, 1.7)):
+        a, b = (dt.date.fromisoformat(s) for s in seg)
         for k in range((b - a).days + 1):
             day = a + dt.timedelta(days=k)
             t0 = int(dt.datetime.combine(day, dt.time(0), tzinfo=tz).timestamp() * 1000)
@@ -79,89 +84,93 @@ def _milan_raw(cfg: dict, out: Path, rng: np.random.Generator) -> list[Path]:
     return paths
 
 
-def _yjmob_raw(cfg: dict, out: Path, rng: np.random.Generator) -> Path:
+def _yjmob_raw(y: YJMobConfig, out: Path, rng: np.random.Generator) -> Path:
     """yjmob100k-dataset1.csv.gz: period-5 activity (phase 4 low), busier test days, some masked rows, and a
     test-period-only hotspot in the north-east that would move a crop chosen on all days."""
-    y = cfg["datasets"]["yjmob"]
+    first_test = int(y.split.test[0])
     out.mkdir(parents=True, exist_ok=True)
     path = out / "yjmob100k-dataset1.csv.gz"
     with gzip.open(path, "wt", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["uid", "d", "t", "x", "y"])
         for uid in range(300):
-            home = np.clip(np.round(rng.normal(6, 1.5, 2)), 1, y["full_size"]).astype(int)
-            for d in range(y["n_days"]):
-                lam = 8.0 * (0.3 if d % 5 == 4 else 1.0) * (1.6 if d >= y["split"]["test"][0] else 1.0)
+            home = np.clip(np.round(rng.normal(6, 1.5, 2)), 1, y.full_size).astype(int)
+            for d in range(y.n_days):
+                lam = 8.0 * (0.3 if d % 5 == 4 else 1.0) * (1.6 if d >= first_test else 1.0)
                 for _ in range(rng.poisson(lam)):
-                    x, yy = np.clip(home + np.round(rng.normal(0, 1.5, 2)), 1, y["full_size"]).astype(int)
+                    x, yy = np.clip(home + np.round(rng.normal(0, 1.5, 2)), 1, y.full_size).astype(int)
                     w.writerow([uid, d, int(rng.integers(0, 48)), int(x), int(yy)])
             if uid % 10 == 0:
-                w.writerow([uid, y["n_days"] - 1, 5, 999, 999])
+                w.writerow([uid, y.n_days - 1, 5, 999, 999])
         for uid in range(300, 400):  # visitors of a north-east venue during the test period only
-            for d in range(y["split"]["test"][0], y["n_days"]):
+            for d in range(first_test, y.n_days):
                 for _ in range(rng.poisson(60.0)):
-                    x, yy = np.clip(np.round(rng.normal(10, 1.0, 2)), 1, y["full_size"]).astype(int)
+                    x, yy = np.clip(np.round(rng.normal(10, 1.0, 2)), 1, y.full_size).astype(int)
                     w.writerow([uid, d, int(rng.integers(0, 48)), int(x), int(yy)])
     return path
 
 
-def prepare(cfg: dict, root: Path, *, only: str | None = None) -> None:
+def prepare(settings: Settings, root: Path, *, only: str | None = None) -> None:
     """Writes results/data/<dataset>/demand.parquet + meta.json with the prepare rule's own function.
 
     Args:
-        cfg: the fixture config; root: the tree; only: prepare this dataset alone.
+        settings: the fixture's settings; root: the tree; only: prepare this dataset alone.
     """
     from prep.pipeline import prepare_dataset
 
-    ref = cfg["datasets"]["common"]["kappa_reference"]
-    for name in ("milan", "yjmob"):
+    common = settings.datasets.common
+    ref = common.kappa_reference
+    for name in sorted(settings.run.datasets, key=lambda d: d != ref):  # the kappa reference first
         if only is not None and name != only:
             continue
-        prepare_dataset(cfg, name, raw=[str(root / "results" / "raw" / name / "demo")],
-                        out_dir=root / "results" / "data" / name,
+        prepare_dataset(getattr(settings.datasets, name), common, name,
+                        raw=[str(root / "results" / "raw" / name / "demo")], out_dir=root / "results" / "data" / name,
                         reference_meta=None if name == ref else str(root / "results" / "data" / ref / "meta.json"))
 
 
-def _hashes(cfg: dict, root: Path, ds: str):
-    from dswm.config import Scenario
-    from dswm.env import Grid, obs_spec_hash
-    from dswm.evaluation import eval_days, eval_days_hash
+def _limits(settings: Settings) -> dict[str, int | None]:
+    """Days per split the profile keeps, as the evaluation takes them."""
+    return {"id": settings.run.eval_days.id, "ood": settings.run.eval_days.ood}
+
+
+def _hashes(settings: Settings, root: Path, ds: str):
+    from dswm.protocol.evaluation import eval_days, eval_days_hash
+    from dswm.sim.core import Grid, obs_spec_hash
     from prep.tensor import load
 
-    scenario = Scenario.from_dict(cfg["scenario"])
+    scenario = settings.scenario
     t = load(root / "results" / "data" / ds)
     grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
-    ev = eval_days(t, cfg["profiles"][cfg["profile"]]["eval_days"])
+    ev = eval_days(t, _limits(settings))
     return scenario, t, grid, ev, {"obs_spec_hash": obs_spec_hash(grid, scenario),
                                    "eval_days_hash": eval_days_hash(ds, ev, t.labels), "scenario_hash": scenario.hash()}
 
 
-def evaluate_static(cfg: dict, root: Path, ds: str, seed: int) -> Path:
-    """Evaluates Static with the pipeline's own evaluation (dswm.evaluation) and writes its result files."""
-    from dswm.baselines import StaticController
-    from dswm.evaluation import evaluate, write_days
+def evaluate_static(settings: Settings, root: Path, ds: str, seed: int) -> Path:
+    """Evaluates Static with the pipeline's own evaluation (dswm.protocol.evaluation) and writes its result
+    files."""
+    from dswm.methods.classical import StaticController
+    from dswm.protocol.evaluation import evaluate, write_days
 
-    scenario, t, _, _, _ = _hashes(cfg, root, ds)
+    scenario, t, _, _, _ = _hashes(settings, root, ds)
     res = evaluate(tensor=t, controller=StaticController(name="static", seed=seed), scenario=scenario, seed=seed,
-                   limits=cfg["profiles"][cfg["profile"]]["eval_days"], profile=cfg["profile"],
-                   progress_interval_s=60.0)
+                   limits=_limits(settings), profile=settings.profile, progress_interval_s=60.0)
     run = root / "results" / ds / "static" / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
-    write_days(res.days, run / "days.parquet", model_record(cfg, root, ds, "static", seed))
+    write_days(res.days, run / "days.parquet", model_record(settings, root, ds, "static", seed))
     np.savez(run / "trajectory.npz", **res.trajectories)
     for f in ("days.parquet", "trajectory.npz"):
         os.utime(run / f, (T0 + 20, T0 + 20))
     return run / "days.parquet"
 
 
-def model_record(cfg: dict, root: Path, ds: str, method: str, seed: int) -> dict:
-    """The model record a clean evaluation of `method` stores in days.parquet (as `dswm.jobs.model_record`): for a
-    learning method, its training source's model.pt (already written) with its SHA-256 and manifest."""
-    from dswm.controllers import training_sources
-    from dswm.runconfig import resolve
+def model_record(settings: Settings, root: Path, ds: str, method: str, seed: int) -> dict:
+    """The model record a clean evaluation of `method` stores in days.parquet (as
+    `dswm.pipeline.jobs.model_record`): for a learning method, its training source's model.pt (already written)
+    with its SHA-256 and manifest."""
     from prep.rawio import sha256_file
 
-    source = training_sources(resolve(cfg)).get(method)
+    source = settings.training_sources().get(method)
     if source is None:
         return {"method": method, "train_source": None, "model": None, "model_sha256": None, "train_manifest": None}
     run = Path("results") / ds / source / f"seed{seed}"
@@ -170,27 +179,28 @@ def model_record(cfg: dict, root: Path, ds: str, method: str, seed: int) -> dict
             "train_manifest": (run / "train_manifest.json").as_posix()}
 
 
-def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
+def write_results(settings: Settings, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
                   days_override: dict[str, list[int]] | None = None, init_pos: np.ndarray | None = None,
                   record: dict | None = None) -> Path:
     """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes and model
     record a clean evaluation records (or the planted `obs_hash`, evaluated `days_override`, initial positions
     `init_pos`, model `record`)."""
-    from dswm.evaluation import DAY_COLUMNS, initial_deployment, write_days
+    from dswm.protocol.evaluation import DAY_COLUMNS, write_days
+    from dswm.sim.core import initial_deployment
 
-    scenario, t, grid, ev, hashes = _hashes(cfg, root, ds)
+    scenario, t, grid, ev, hashes = _hashes(settings, root, ds)
     if obs_hash is not None:
         hashes["obs_spec_hash"] = obs_hash
     days = days_override or ev
     rng = np.random.default_rng(seed)
     rows = [{"day": d, "label": t.labels[d], "split": split, "sr_mean": float(rng.uniform(0.5, 0.9)),
              "energy_kj_per_slot": 1616.0, "energy_efficiency": 0.3, "jain": 0.8, "plan_ms_per_slot": 1.0,
-             **hashes, "seed": seed, "method": method, "dataset": ds, "profile": cfg["profile"],
+             **hashes, "seed": seed, "method": method, "dataset": ds, "profile": settings.profile,
              "data_source": "demo"} for split, idx in days.items() for d in idx]
     run = root / "results" / ds / method / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
     write_days(pl.DataFrame(rows).select(DAY_COLUMNS), run / "days.parquet",
-               record if record is not None else model_record(cfg, root, ds, method, seed))
+               record if record is not None else model_record(settings, root, ds, method, seed))
     init = initial_deployment(t, grid, scenario) if init_pos is None else init_pos
     traj = {}
     for split in ("id", "ood"):
@@ -203,11 +213,11 @@ def write_results(cfg: dict, root: Path, ds: str, method: str, seed: int, *, obs
     return run / "days.parquet"
 
 
-def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, days: list[int] | None = None) -> Path:
+def write_training(root: Path, ds: str, method: str, seed: int, *, days: list[int] | None = None) -> Path:
     """Writes what the train rule leaves for a learning job: train/checkpoint.pt, model.pt and
     train_manifest.json (recording training days only unless `days` is given), in that order in time. The
-    manifest records the SHA-256 of both files and of the prepared tensor and meta.json, as `dswm.jobs.train_job`
-    does."""
+    manifest records the SHA-256 of both files and of the prepared tensor and meta.json, as
+    `dswm.pipeline.jobs.train_job` does."""
     from prep.atomic import write_json
     from prep.rawio import sha256_file
     from prep.tensor import META_FILE, TENSOR_FILE, load
@@ -236,41 +246,45 @@ def write_training(cfg: dict, root: Path, ds: str, method: str, seed: int, *, da
     return path
 
 
-def calibrate(cfg: dict, root: Path) -> None:
-    """The fixture's calibration: Static's training-day score at the configured u (dswm.calibration) becomes
-    the target, and the record is written in the calibrate rule's format."""
-    from dswm.calibration import static_score
-    from dswm.config import Scenario
+def calibrate(settings: Settings, root: Path) -> float:
+    """The fixture's calibration: Static's training-day score at the configured u (dswm.protocol.calibration),
+    written in the calibrate rule's format; returns it rounded, the target the fixture's config records."""
+    from dswm.protocol.calibration import static_score
     from prep.tensor import load
 
-    ds = cfg["calibration"]["dataset"]
+    ds = settings.calibration.dataset
     t = load(root / "results" / "data" / ds)
-    scenario = Scenario.from_dict(cfg["scenario"])
+    scenario = settings.scenario
     sr = static_score(t, scenario, t.train_days)
-    cfg["calibration"]["target_served_ratio"] = round(sr, 4)
     rec = {"demand_intensity": scenario.demand_intensity, "served_ratio": sr, "target": round(sr, 4),
            "iterations": 0, "dataset": ds, "data_source": t.meta["source"],
            "train_days": [t.labels[d] for d in t.train_days], "config_value": scenario.demand_intensity}
     (root / "results" / "calibration").mkdir(parents=True, exist_ok=True)
     (root / "results" / "calibration" / "demand_intensity.json").write_text(json.dumps(rec))
+    return round(sr, 4)
 
 
-def build_clean_tree(root: Path | str) -> dict:
-    """Builds the whole clean tree under `root`; returns the config it was built under."""
+def build_clean_tree(root: Path | str) -> Settings:
+    """Builds the whole clean tree under `root`, its config written as `root`/config.json.
+
+    Returns:
+        The settings resolved from that config (what the audit of the tree reads).
+    """
     root = Path(root)
     cfg = fixture_config()
+    settings = resolve(cfg)
     rng = np.random.default_rng(0)
-    _milan_raw(cfg, root / "results" / "raw" / "milan" / "demo", rng)
-    _yjmob_raw(cfg, root / "results" / "raw" / "yjmob" / "demo", rng)
-    prepare(cfg, root)
-    for ds in cfg["profiles"]["smoke"]["datasets"]:
-        for method in METHODS:
+    _milan_raw(settings.datasets.milan, root / "results" / "raw" / "milan" / "demo", rng)
+    _yjmob_raw(settings.datasets.yjmob, root / "results" / "raw" / "yjmob" / "demo", rng)
+    prepare(settings, root)
+    for ds in settings.run.datasets:
+        for method in settings.methods:
             if method == "dswm":  # the training source; dswm_wo_unc evaluates its model
-                write_training(cfg, root, ds, method, 0)
+                write_training(root, ds, method, 0)
             if method == "static":
-                evaluate_static(cfg, root, ds, 0)
+                evaluate_static(settings, root, ds, 0)
             else:
-                write_results(cfg, root, ds, method, 0)
-    calibrate(cfg, root)
+                write_results(settings, root, ds, method, 0)
+    cfg["calibration"]["target_served_ratio"] = calibrate(settings, root)
     (root / "config.json").write_text(json.dumps(cfg))
-    return cfg
+    return resolve(cfg)

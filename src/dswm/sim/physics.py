@@ -1,9 +1,9 @@
-"""The service model of SPEC section 2: the ONE implementation used by the environment, every planner and
+"""The service model of docs/PROTOCOL.md §2: the ONE implementation used by the environment, every planner and
 the world model's decomposed service head.
 
 Chain for a batch of N candidate fleets, K UAVs and G cells:
 nearest-available association (distances for every (candidate, cell, UAV), no transcendental work; a
-compiled kernel on CPU, ``dswm.kernels``)
+compiled kernel on CPU, ``dswm.sim.kernels``)
 -> elevation angle, Al-Hourani LoS probability and dB-mixed path loss for the ASSOCIATED pair only
 -> per-UAV bandwidth split with weights x_g^tau_k, tau_k = exp(bw_logit_k)
 -> Shannon rate -> capped fulfilment f_g = min(1, R_g / (x_g u r0)) -> served ratio sum x f / sum x.
@@ -20,8 +20,8 @@ from typing import NamedTuple
 
 import torch
 
-from dswm.config import Scenario
-from dswm.kernels import nearest_available
+from dswm.sim.scenario import Scenario
+from dswm.sim.kernels import nearest_available
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 # Demand below this (in normalized units, i.e. a 1e-9 fraction of the training p99) counts as no demand:
@@ -35,20 +35,20 @@ SHARE_FLOOR_HZ = 1e-3
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ServiceParams:
-    """Constants of the service model (a projection of the Scenario)."""
+    """Constants of the service model (a projection of the Scenario; their values live in config.yaml only)."""
 
-    altitude_m: float = 100.0
-    carrier_hz: float = 2.0e9
-    bandwidth_hz: float = 2.0e7
-    tx_power_w: float = 0.5
-    noise_psd_w_per_hz: float = 10.0**-20.4
-    r0_bps: float = 5.0e5
-    demand_intensity: float = 1.0
-    u_peak: float = 0.8
-    los_a: float = 9.61
-    los_b: float = 0.16
-    eta_los_db: float = 1.0
-    eta_nlos_db: float = 20.0
+    altitude_m: float
+    carrier_hz: float
+    bandwidth_hz: float
+    tx_power_w: float
+    noise_psd_w_per_hz: float
+    r0_bps: float
+    demand_intensity: float
+    u_peak: float
+    los_a: float
+    los_b: float
+    eta_los_db: float
+    eta_nlos_db: float
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> "ServiceParams":
@@ -93,7 +93,7 @@ def _snr_hz_constant(params: ServiceParams) -> float:
     return params.tx_power_w / params.noise_psd_w_per_hz * wavelength_over_4pi**2
 
 
-def los_probability(theta_deg, a: float = 9.61, b: float = 0.16):
+def los_probability(theta_deg, a: float, b: float):
     """LoS probability 1 / (1 + a exp(-b (theta - a))) with the elevation angle in DEGREES.
 
     Args:
@@ -128,7 +128,7 @@ def elevation_deg(distance_m, altitude_m: float, *, horizontal_sq=None):
     return math.degrees(math.asin(min(1.0, altitude_m / float(distance_m))))
 
 
-def path_loss_db(distance_m, params: ServiceParams = ServiceParams(), *, horizontal_sq=None):
+def path_loss_db(distance_m, params: ServiceParams, *, horizontal_sq=None):
     """Expected path loss in dB: free space plus LoS/NLoS excess losses mixed in dB (paper eq. 2).
 
     Args:
@@ -168,7 +168,7 @@ def nearest_pairs(pos: torch.Tensor, available: torch.Tensor,
                   cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``associate`` and the squared horizontal distance of every cell to its UAV (N, G), not differentiable.
 
-    On CPU the compiled kernel ``dswm.kernels.nearest_available`` does it in one pass per candidate; on other
+    On CPU the compiled kernel ``dswm.sim.kernels.nearest_available`` does it in one pass per candidate; on other
     devices ``nearest_pairs_tensor`` does. Both compute the squared distance the same way and agree exactly.
     """
     if pos.device.type == "cpu":

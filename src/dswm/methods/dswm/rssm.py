@@ -14,27 +14,25 @@ from torch import nn
 from torch.nn import functional as F
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RSSMConfig:
     """Sizes and KL settings of the RSSM (values and reasons in config.yaml ``dswm.world_model``)."""
 
-    deter: int = 128
+    deter: int
     """Size of the GRU state h."""
-    stoch: int = 32
+    stoch: int
     """Size of the diagonal-Gaussian state z."""
-    hidden: int = 128
+    hidden: int
     """Width of the prior/posterior MLPs and of the GRU input layer."""
-    embed: int = 128
+    embed: int
     """Size of the observation embedding e_psi(o_t)."""
-    action_dim: int = 48
-    """Flattened action size K*3."""
-    min_std: float = 0.1
+    min_std: float
     """Lower bound of the Gaussian std, keeps the KL finite."""
-    free_bits: float = 0.1
+    free_bits: float
     """Per-dimension KL floor in nats (eq. 12)."""
-    kl_dyn: float = 0.8
+    kl_dyn: float
     """Weight of KL(sg[q] || p): trains the prior."""
-    kl_rep: float = 0.2
+    kl_rep: float
     """Weight of KL(q || sg[p]): trains the posterior."""
 
 
@@ -60,10 +58,10 @@ def map_state(state: LatentState, fn) -> LatentState:
 class RSSM(nn.Module):
     """h_t = f(h_{t-1}, z_{t-1}, a_{t-1});  p(z_t | h_t);  q(z_t | h_t, e(o_t))."""
 
-    def __init__(self, *, cfg: RSSMConfig):
+    def __init__(self, *, cfg: RSSMConfig, action_dim: int):
         super().__init__()
         self.cfg = cfg
-        self.inp = nn.Sequential(nn.Linear(cfg.stoch + cfg.action_dim, cfg.hidden), nn.ELU())
+        self.inp = nn.Sequential(nn.Linear(cfg.stoch + action_dim, cfg.hidden), nn.ELU())
         self.gru = nn.GRUCell(cfg.hidden, cfg.deter)
         self.prior_net = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.ELU(),
                                        nn.Linear(cfg.hidden, 2 * cfg.stoch))

@@ -7,6 +7,9 @@
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
 
+Each job receives ``job``, the plain form of the settings slice its rule passes (``dswm.settings.*_slice``),
+and builds its typed settings from it with the project's one builder; no job reads config.yaml.
+
 Every output is written atomically (temp file, then rename), and training/evaluation jobs are tracked in
 MLflow with exactly one run each.
 """
@@ -16,14 +19,18 @@ import json
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import numpy as np
 import torch
 
-from dswm import calibration, controllers, evaluation, runconfig, tables, tracking
-from dswm.allocator import keep_freed_memory
-from dswm.atomic import save_npz, write_json
-from dswm.config import Scenario
-from dswm.core import FleetCore, Grid
+from dswm.config import build, stable_hash
+from dswm.methods import registry
+from dswm.pipeline import tracking
+from dswm.pipeline.allocator import keep_freed_memory
+from prep.atomic import save_npz, write_json
+from dswm.protocol import calibration, evaluation, tables
+from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, MethodSettings,
+                           Runtime)
+from dswm.sim.core import FleetCore, core_from_tensor
+from dswm.sim.scenario import Scenario
 from prep.rawio import sha256_file
 
 DAY_METRICS = ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot")
@@ -59,28 +66,31 @@ def prepared_files_read(tensor_dir: str | Path) -> list[dict]:
             for name in (TENSOR_FILE, META_FILE)]
 
 
-def _setup(config: Mapping[str, Any]) -> tuple[dict, Scenario]:
-    resolved = runconfig.resolve(config)
-    torch.set_num_threads(int(resolved["evaluation"]["torch_threads"]))
+def _setup(runtime: Runtime | EvaluationSettings) -> None:
+    torch.set_num_threads(runtime.torch_threads)
     keep_freed_memory()
-    return resolved, Scenario.from_dict(resolved["scenario"])
+
+
+def _common(job: Mapping[str, Any], key: str, cls: type) -> tuple[Any, Scenario, MethodSettings]:
+    """The typed ``job[key]`` (runtime or evaluation settings), scenario and method of a train or evaluate job."""
+    run = build(cls, job[key], key)
+    _setup(run)
+    return run, Scenario.from_dict(job["scenario"]), MethodSettings.from_plain(job["method"], "method")
 
 
 def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
     """A FleetCore over the TRAINING days only; ``core.day_ids`` maps its days to tensor day indices."""
-    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
-    train = np.asarray(tensor.train_days, dtype=np.int64)
-    labels = [d["label"] for d in tensor.meta["days"]]
-    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[train]), grid=grid, scenario=scenario,
-                     init_pos=evaluation.initial_deployment(tensor, grid, scenario), dataset=tensor.meta["dataset"],
-                     day_labels=[labels[d] for d in train], device=device)
-    core.day_ids = train
-    return core
+    return core_from_tensor(tensor, scenario, tensor.train_days, device=device)
 
 
-def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str, method: str, seed: int,
-              model_out: str | Path, manifest_out: str | Path, run_dir: str | Path, repo: str | Path) -> dict:
+def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: str | Path, dataset: str, method: str,
+              seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
+              repo: str | Path) -> dict:
     """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
+
+    Args:
+        job: the plain form of ``dswm.settings.train_slice`` (the method carries its training settings only).
+        evaluated_as: the methods whose evaluations load this model (an MLflow tag).
 
     The manifest is what ``fit`` returns plus ``checkpoint_sha256`` (the checkpoint ``fit`` recorded, hashed when
     it returned), ``model``, ``model_sha256`` (``model_out`` once saved) and ``data_files_read``
@@ -89,19 +99,16 @@ def train_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str
     Returns:
         The manifest written (without the loss history, which goes to MLflow).
     """
-    resolved, scenario = _setup(config)
+    ev, scenario, m = _common(job, "runtime", Runtime)
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
-    cls = controllers.controller_class(method, resolved)
-    budget = cls.budget_from_config(name=method, config=resolved)
-    with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="train", dataset=dataset,
-                          method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
-        users = [m for m, src in controllers.training_sources(resolved).items() if src == method]
-        run.set_tags({"evaluated_as": ",".join(users or [method])})  # methods whose evaluations load this model
+    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="train", dataset=dataset,
+                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+        run.set_tags({"evaluated_as": ",".join(evaluated_as)})  # methods whose evaluations load this model
         torch.manual_seed(seed)
-        ctrl = cls.from_config(name=method, config=resolved, seed=seed)
-        core = training_core(tensor, scenario, device=resolved["evaluation"]["device"])
-        manifest = dict(ctrl.fit(core, budget=budget, run_dir=run_dir))
+        ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
+        core = training_core(tensor, scenario, device=ev.device)
+        manifest = dict(ctrl.fit(core, run_dir=run_dir))
         history = manifest.pop("history", None) or {}
         steps = history.pop("step", None)
         for name, values in history.items():
@@ -128,7 +135,7 @@ def model_record(*, method: str, source: str | None = None, model: str | Path | 
 
     Args:
         method: the evaluated method.
-        source: its training source (controllers.training_sources); None for a method that does not learn.
+        source: its training source (dswm.methods.registry.training_sources); None for a method that does not learn.
         model: the source's model file, hashed here, before it is loaded.
         manifest: the source's train_manifest.json; its ``model_sha256`` must be the model file's SHA-256.
 
@@ -147,35 +154,39 @@ def model_record(*, method: str, source: str | None = None, model: str | Path | 
             "train_manifest": _workdir_relative(manifest)}
 
 
-def evaluate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: str, method: str, seed: int,
-                 days_out: str | Path, trajectory_out: str | Path, repo: str | Path,
+def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, dataset: str, method: str,
+                 seed: int, days_out: str | Path, trajectory_out: str | Path, repo: str | Path,
                  model: str | Path | None = None, manifest: str | Path | None = None) -> evaluation.EvalResult:
     """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz; track it in MLflow.
 
-    A learning method loads ``model``, the model of its training source (``controllers.training_sources``), and
-    ``manifest``, that source's training manifest. days.parquet records the model (:func:`model_record`) in its
-    metadata; the MLflow run is tagged ``train_source``, ``model_path`` and ``model_sha256``.
+    Args:
+        job: the plain form of ``dswm.settings.evaluate_slice``.
+        display: how the job reports progress (not part of its rerun trigger).
+
+    A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
+    training manifest. days.parquet records the model (:func:`model_record`) in its metadata; the MLflow run is
+    tagged ``train_source``, ``model_path`` and ``model_sha256``.
     """
-    resolved, scenario = _setup(config)
+    ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
+    limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
-    ev = resolved["evaluation"]
-    with tracking.job_run(mlflow_cfg=resolved["mlflow"], resolved=resolved, stage="evaluate", dataset=dataset,
-                          method=method, seed=seed, config_hash=runconfig.config_hash(resolved), repo=repo) as run:
-        ctrl = controllers.build(method, config=resolved, seed=seed)
+    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="evaluate", dataset=dataset,
+                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+        ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
         record = model_record(method=method)
         if ctrl.learns:
             if model is None or manifest is None:
                 raise ValueError(f"{method}: a learning method needs its training source's model file and "
                                  f"train_manifest.json (found model={model!r}, manifest={manifest!r})")
-            source = controllers.training_sources(resolved).get(method, method)
+            source = m.training_source or method
             record = model_record(method=method, source=source, model=model, manifest=manifest)
             run.set_tags({"train_source": source, "model_path": record["model"],
                           "model_sha256": record["model_sha256"]})
             ctrl.load(model)
         result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
-                                     limits=resolved["run"]["eval_days"], profile=resolved["profile"],
-                                     device=ev["device"], batch_days=ev["batch_days"],
-                                     progress_interval_s=ev["progress_mininterval_s"])
+                                     limits={"id": limits.id, "ood": limits.ood}, profile=job["profile"],
+                                     device=ev.device, batch_days=ev.batch_days,
+                                     progress_interval_s=display.progress_mininterval_s)
         evaluation.write_days(result.days, days_out, record)
         save_npz(trajectory_out, **result.trajectories)
         for row in result.days.iter_rows(named=True):
@@ -188,24 +199,34 @@ def evaluate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, dataset: 
     return result
 
 
-def calibrate_job(*, config: Mapping[str, Any], tensor_dir: str | Path, out: str | Path) -> dict:
-    """Bisection of the demand intensity (see dswm.calibration); writes and returns the JSON report."""
-    resolved, scenario = _setup(config)
+def calibrate_job(*, job: Mapping[str, Any], tensor_dir: str | Path, out: str | Path) -> dict:
+    """Bisection of the demand intensity (see dswm.protocol.calibration); writes and returns the JSON report.
+
+    Args:
+        job: the plain form of ``dswm.settings.calibrate_slice`` (the scenario less its demand intensity).
+    """
+    ev = build(Runtime, job["runtime"], "runtime")
+    _setup(ev)
+    cal = build(CalibrationSettings, job["calibration"], "calibration")
+    # The value being calibrated is not an input: the bracket's lower end stands in until bisection sets it.
+    scenario = Scenario.from_dict({**job["scenario"], "demand_intensity": cal.bracket[0]})
     tensor = _load_tensor(tensor_dir)
-    cal = resolved["calibration"]
-    report = calibration.calibrate(tensor=tensor, scenario=scenario, target=cal["target_served_ratio"],
-                                   bracket=tuple(cal["bracket"]), tolerance=cal["tolerance"],
-                                   max_iter=cal["max_iter"], device=resolved["evaluation"]["device"])
-    report["config_value"] = scenario.demand_intensity
+    report = calibration.calibrate(tensor=tensor, scenario=scenario, target=cal.target_served_ratio,
+                                   bracket=cal.bracket, tolerance=cal.tolerance, max_iter=cal.max_iter,
+                                   device=ev.device)
     write_json(out, report)
     return report
 
 
-def tables_job(*, config: Mapping[str, Any], result_paths: Sequence[str | Path], meta_paths: Mapping[str, str | Path],
+def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], meta_paths: Mapping[str, str | Path],
                out_dir: str | Path) -> dict:
-    """Build <tables.main_dataset>_main and cross_dataset (md, tex, csv) from the result files."""
-    resolved = runconfig.resolve(config)
-    specs = {m: controllers.spec(m, resolved) for m in resolved["methods"]["run"]}
+    """Build <tables.main_dataset>_main and cross_dataset (md, tex, csv) from the result files.
+
+    Args:
+        job: the plain form of ``dswm.settings.tables_slice``.
+    """
+    specs = {m["name"]: registry.MethodSpec(name=m["name"], target="", label=m["label"], table_class=m["table_class"])
+             for m in job["methods"]}
     return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,
-                               run_order=list(resolved["methods"]["run"]), tables_cfg=resolved["tables"],
-                               profile=resolved["profile"], out_dir=out_dir)
+                               run_order=[m["name"] for m in job["methods"]], tables_cfg=job["tables"],
+                               profile=job["profile"], out_dir=out_dir)

@@ -1,4 +1,4 @@
-"""Calibration of the demand intensity u (SPEC section 2).
+"""Calibration of the demand intensity u (docs/PROTOCOL.md §2).
 
 With the published constants alone every cell would be fully served, so the requested rate of a cell is
 x_g * u * r0 with ONE u for every dataset, chosen so that Static serves ``target`` (0.74) on the Milan
@@ -12,11 +12,11 @@ import math
 
 import numpy as np
 
-from dswm.baselines import StaticController
-from dswm.config import ConfigError, Scenario
-from dswm.controllers import DayContext
-from dswm.core import FleetCore, Grid
-from dswm.evaluation import initial_deployment
+from dswm.methods.classical import StaticController
+from dswm.config import ConfigError
+from dswm.sim.scenario import Scenario
+from dswm.methods.base import DayContext
+from dswm.sim.core import core_from_tensor
 
 
 def static_score(tensor, scenario: Scenario, days: np.ndarray, *, device: str = "cpu") -> float:
@@ -28,12 +28,8 @@ def static_score(tensor, scenario: Scenario, days: np.ndarray, *, device: str = 
         days: tensor day indices.
         device: torch device of the environment.
     """
-    grid = Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
-    labels = [d["label"] for d in tensor.meta["days"]]
-    init_pos = initial_deployment(tensor, grid, scenario)
-    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[days]), grid=grid, scenario=scenario,
-                     init_pos=init_pos, dataset=tensor.meta["dataset"], day_labels=[labels[d] for d in days],
-                     device=device)
+    core = core_from_tensor(tensor, scenario, days, device=device)
+    grid, labels, init_pos = core.grid, tensor.labels, core.init_pos.cpu().numpy()
     ctrl = StaticController(name="static")
     ctxs = [DayContext(dataset=tensor.meta["dataset"], day=int(d), label=labels[d], split="train", grid=grid,
                        scenario=scenario, geometry=grid.geometry(), cells=grid.cells(), init_pos=init_pos,
@@ -91,7 +87,7 @@ def calibrate(*, tensor, scenario: Scenario, target: float, bracket: tuple[float
         raise ConfigError(f"config.yaml: keys 'calibration.max_iter' = {max_iter} and 'calibration.tolerance' = "
                           f"{tolerance:g}: after {it} bisection steps Static serves {s:.6f} at u={u:.6g}, still "
                           f"{abs(s - target):.2e} from the target {target} (raise max_iter or the tolerance)")
-    labels = [d["label"] for d in tensor.meta["days"]]
+    labels = tensor.labels
     return {"demand_intensity": u, "served_ratio": s, "target": target, "iterations": it,
             "dataset": tensor.meta["dataset"], "data_source": tensor.meta["source"],
             "train_days": [labels[d] for d in days]}

@@ -1,6 +1,6 @@
-"""Compiled CPU kernel of the nearest-available-UAV association (``dswm.physics.associate`` on CPU).
+"""Compiled CPU kernel of the nearest-available-UAV association (``dswm.sim.physics.associate`` on CPU).
 
-The association rule is the one of SPEC section 2: every cell is served by the available UAV at the smallest
+The association rule is the one of docs/PROTOCOL.md §2: every cell is served by the available UAV at the smallest
 horizontal distance, ties going to the lowest UAV index. Written with tensor operations it materializes the
 (candidate, UAV, cell) distances and several same-sized temporaries: for the planner's 512 candidates, 16 UAVs
 and 400 cells that is 3.3M triples per imagined step, and memory traffic, not arithmetic, bounds it. The kernel

@@ -18,7 +18,7 @@ from typing import Any, Iterable, Mapping
 
 import polars as pl
 
-from dswm.atomic import write_text
+from prep.atomic import write_text
 from prep.tensor import read_meta
 
 MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]

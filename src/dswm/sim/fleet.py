@@ -1,4 +1,4 @@
-"""Fleet kinematics and the battery state machine of SPEC section 3, as pure batched tensor functions.
+"""Fleet kinematics and the battery state machine of docs/PROTOCOL.md §3, as pure batched tensor functions.
 
 The environment steps real episodes with ``fleet_step``; planners propagate imagined fleets with the very
 same function, so an imagined battery return happens exactly when the environment would make it happen.
@@ -18,8 +18,8 @@ from typing import NamedTuple
 
 import torch
 
-from dswm.config import Scenario
-from dswm.energy import rotor_power
+from dswm.sim.scenario import Scenario
+from dswm.sim.energy import rotor_power
 
 ACTIVE, RETURNING, CHARGING = 0, 1, 2
 

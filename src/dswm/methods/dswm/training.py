@@ -18,13 +18,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from dswm.atomic import atomic_path
-from dswm.core import fleet_state_from_obs
-from dswm.fleet import available
-from dswm.physics import associate
-from dswm.planner import lloyd_step
-from dswm.replay import SequenceReplay
-from dswm.world_model import WorldModel
+from prep.atomic import atomic_path
+from dswm.sim.core import fleet_state_from_obs
+from dswm.sim.fleet import available
+from dswm.sim.physics import associate
+from dswm.methods.dswm.planner import lloyd_step
+from dswm.methods.dswm.replay import SequenceReplay
+from dswm.methods.dswm.world_model import WorldModel
 
 COLLECT_POLICIES = ("lloyd", "greedy")
 HISTORY_KEYS = ("loss", "dem", "cal", "kl", "kl_dyn", "kl_rep", "lpr_pred", "lpr_var", "serve", "h_std")
@@ -42,7 +42,7 @@ class TrainConfig:
     grad_clip: float
     """Global gradient-norm clip."""
     collect_policy: str
-    """"lloyd" (move to the demand centroid of the UAV's Voronoi region) or "greedy" (dswm.baselines)."""
+    """"lloyd" (move to the demand centroid of the UAV's Voronoi region) or "greedy" (dswm.methods.classical)."""
     collect_parallel: int
     """Training days stepped together during pre-collection."""
     explore_std: float
@@ -58,7 +58,7 @@ class TrainConfig:
 # ---- pre-collection -------------------------------------------------------------------------------------
 def lloyd_moves(obs: dict, core, rng: np.random.Generator, cfg: TrainConfig) -> np.ndarray:
     """Heuristic action (B, K, 3): each UAV heads for the demand-weighted centroid of the cells it serves
-    (``dswm.planner.lloyd_step``), plus exploration noise; bandwidth logits are drawn around 0."""
+    (``dswm.methods.dswm.planner.lloyd_step``), plus exploration noise; bandwidth logits are drawn around 0."""
     state = fleet_state_from_obs(obs["fleet"], core.grid, core.scenario)
     x = torch.as_tensor(obs["demand"][:, -1]).reshape(len(state.pos), -1)     # (B, G)
     cells = core.cells.cpu().float()
@@ -72,10 +72,12 @@ def lloyd_moves(obs: dict, core, rng: np.random.Generator, cfg: TrainConfig) -> 
 
 def _greedy_policy(core):
     """A batched greedy controller over the core's days (lazy import: baselines are optional here)."""
-    from dswm.baselines import GreedyController
-    from dswm.controllers import DayContext
+    from dswm.methods.base import DayContext
+    from dswm.methods.classical import GreedyController
+    from dswm.methods.search import SearchSettings
 
-    greedy = GreedyController(name="greedy", sweeps=1, lattice=5)
+    # A cheap search (one sweep, 5x5 lattice, proportional split): pre-collection needs varied, sensible moves.
+    greedy = GreedyController(name="greedy", options=SearchSettings(sweeps=1, lattice=5, refine=0, bw_logits=()))
 
     def reset(rows):
         greedy.reset_batch([DayContext(dataset=core.dataset, day=int(r), label=core.day_labels[r], split="train",

@@ -2,7 +2,7 @@
 
 The store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every
 training or evaluation job then opens exactly one run with :func:`job_run`. A run is tagged with its job key
-(stage/dataset/method/seed), the profile, the git commit and the config hash, and carries the resolved config
+(stage/dataset/method/seed), the profile, the git commit and the hash of its settings, and carries the settings slice it read
 as params. Metrics go out in batches (one SQLite round trip per batch instead of one per value). When a job is
 rerun, the previous FINISHED runs of the same job key are deleted once the new one finishes, so the UI never
 shows two finished runs of one job; a job that raises (or is terminated) ends its run FAILED. Tables never
@@ -148,16 +148,16 @@ class _Terminated(Exception):
 
 
 @contextlib.contextmanager
-def job_run(*, mlflow_cfg: Mapping[str, Any], resolved: Mapping[str, Any], stage: str, dataset: str,
+def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage: str, dataset: str,
             method: str, seed: int, config_hash: str, repo: str | Path = ".") -> Iterator[JobRun]:
     """Open the one MLflow run of a job; end it FINISHED, or FAILED if the body raises or is terminated.
 
     Args:
         mlflow_cfg: the ``mlflow`` section (store, artifacts, experiment, batch_size).
-        resolved: the resolved config, logged as params.
+        settings: the settings slice the job read (plain form), logged as params.
         stage: "train" or "evaluate".
         dataset, method, seed: the job's wildcards.
-        config_hash: hash of the resolved config (tag).
+        config_hash: hash of that slice (tag).
         repo: the repository, for the git commit tag.
 
     Yields:
@@ -175,11 +175,11 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], resolved: Mapping[str, Any], stage
     for stale in _runs_of(client, exp.experiment_id, key, "RUNNING"):  # left behind by a killed job
         _retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     tags = {"job_key": key, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
-            "profile": resolved["profile"], "git_commit": git_commit(repo), "config_hash": config_hash,
+            "profile": settings["profile"], "git_commit": git_commit(repo), "config_hash": config_hash,
             "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
     run = _retry(client.create_run, exp.experiment_id, tags=tags)
     job = JobRun(client=client, run_id=run.info.run_id, batch_size=int(mlflow_cfg["batch_size"]))
-    params = [Param(k, v) for k, v in sorted(flatten(resolved).items())]
+    params = [Param(k, v) for k, v in sorted(flatten(settings).items())]
     for i in range(0, len(params), MAX_PARAMS_PER_BATCH):
         _retry(client.log_batch, job.run_id, params=params[i: i + MAX_PARAMS_PER_BATCH])
 

@@ -1,6 +1,6 @@
 """Batched fleet environment core: many one-day episodes stepped at once on a demand tensor.
 
-Timing (SPEC section 3): at slot t the controller sees o_t (maps x_{t-w..t}, fleet state, time phase) and
+Timing (docs/PROTOCOL.md §3): at slot t the controller sees o_t (maps x_{t-w..t}, fleet state, time phase) and
 acts; the fleet moves to p_{t+1}; x_{t+1} is revealed and SR_{t+1} = SR(x_{t+1}, p_{t+1}). Slot 0 is served
 by the initial deployment, SR_0 = SR(x_0, p_0) with the demand-proportional split, so a day has T-1 decisions
 and T served-ratio values; its score is their mean.
@@ -14,10 +14,11 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import torch
 
-from dswm.config import Scenario, stable_hash
-from dswm.energy import hover_power
-from dswm.fleet import ACTIVE, CHARGING, RETURNING, FleetState, Geometry, available, fleet_step
-from dswm.physics import ServiceParams, jain_index, service
+from dswm.config import stable_hash
+from dswm.sim.scenario import Scenario
+from dswm.sim.energy import hover_power
+from dswm.sim.fleet import ACTIVE, CHARGING, RETURNING, FleetState, Geometry, available, fleet_step
+from dswm.sim.physics import ServiceParams, jain_index, service
 
 OBS_SPEC_VERSION = 1
 FLEET_FEATURES = ("x_over_width", "y_over_height", "battery_fraction", "active", "returning", "charging",
@@ -83,7 +84,7 @@ def validate_demand(demand: np.ndarray, grid: Grid, scenario: Scenario, *, where
 
 
 def initial_positions(train_mean_map: np.ndarray, grid: Grid, n_uavs: int, seed: int) -> np.ndarray:
-    """Demand-weighted K-means of the mean TRAINING map (SPEC section 3).
+    """Demand-weighted K-means of the mean TRAINING map (docs/PROTOCOL.md §3).
 
     Args:
         train_mean_map: (rows, cols) mean demand over the training days.
@@ -266,3 +267,30 @@ class FleetCore:
         return StepOutput(obs=self.observe(), reward=reward.numpy(), sr=res.sr.numpy(),
                           energy_j=fleet_energy.numpy(), jain=jain.numpy(),
                           terminated=np.full(b, done), truncated=np.zeros(b, dtype=bool))
+
+
+def grid_of(tensor) -> Grid:
+    """The Grid of a prepared tensor (``prep.tensor.DemandTensor``)."""
+    return Grid(rows=tensor.grid.rows, cols=tensor.grid.cols, cell_m=tensor.grid.cell_m)
+
+
+def initial_deployment(tensor, grid: Grid, scenario: Scenario) -> np.ndarray:
+    """(K, 2) demand-weighted K-means of the mean TRAINING map of ``tensor`` (the same for every method)."""
+    train_mean = tensor.demand[tensor.train_days].mean(axis=(0, 1))
+    return initial_positions(train_mean, grid, scenario.n_uavs, scenario.init.kmeans_seed)
+
+
+def core_from_tensor(tensor, scenario: Scenario, days, *, device: str = "cpu") -> FleetCore:
+    """The one way from a prepared tensor to the environment: a FleetCore over tensor days ``days``.
+
+    Its grid is the tensor's, its initial deployment :func:`initial_deployment`, its day labels the tensor's
+    own (``tensor.labels``); ``core.day_ids`` maps each of its days back to the tensor day index.
+    """
+    days = np.asarray(days, dtype=np.int64)
+    grid = grid_of(tensor)
+    labels = tensor.labels
+    core = FleetCore(demand=np.ascontiguousarray(tensor.demand[days]), grid=grid, scenario=scenario,
+                     init_pos=initial_deployment(tensor, grid, scenario), dataset=tensor.meta["dataset"],
+                     day_labels=[labels[d] for d in days], device=device)
+    core.day_ids = days
+    return core

@@ -12,15 +12,9 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from dswm.config import Scenario
-from dswm.core import (FLEET_FEATURES, FleetCore, Grid, StepOutput, build_observation, fleet_state_from_obs,
-                       initial_batteries, initial_positions, obs_spec, obs_spec_hash, validate_demand)
+from dswm.sim.scenario import Scenario
+from dswm.sim.core import FLEET_FEATURES, FleetCore, Grid, StepOutput, initial_positions, validate_demand
 
-__all__ = [
-    "FLEET_FEATURES", "FleetCore", "Grid", "StepOutput", "UAVFleetEnv", "UAVFleetParallelEnv",
-    "build_observation", "fleet_state_from_obs", "initial_batteries", "initial_positions", "obs_spec",
-    "obs_spec_hash", "validate_demand", "default_scenario", "synthetic_demand", "register_envs",
-]
 
 ENV_ID = "dswm/UAVFleet-v0"
 
@@ -29,9 +23,9 @@ def default_scenario() -> Scenario:
     """The scenario of the repository's config.yaml (for environments built without one)."""
     from pathlib import Path
 
-    from dswm.config import load_scenario
+    from dswm.sim.scenario import load_scenario
 
-    return load_scenario(Path(__file__).resolve().parents[2] / "config.yaml")
+    return load_scenario(Path(__file__).resolve().parents[3] / "config.yaml")
 
 
 def synthetic_demand(*, days: int = 2, rows: int = 10, cols: int = 10, slots: int = 144,
@@ -164,7 +158,7 @@ class UAVFleetParallelEnv(ParallelEnv):
 def register_envs() -> None:
     """Register ``dswm/UAVFleet-v0`` with Gymnasium (idempotent; also the package's plugin entry point)."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="dswm.env:UAVFleetEnv")
+        gym.register(id=ENV_ID, entry_point="dswm.sim.env:UAVFleetEnv")
 
 
 register_envs()

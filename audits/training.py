@@ -1,0 +1,305 @@
+"""Protocol family, part 2: learners learn from training days only and are evaluated with the model they trained.
+
+* `check_training_days`: every learning method's training manifest (its training source's, for a method whose
+  training is identical to an earlier one's) records the day of its pre-collected or replayed data, and every
+  such day is a training day.
+* `check_checkpoints`: the checkpoint and the model file of every train job hash to the SHA-256 the training
+  manifest recorded when training ended, and every prepared file training read still hashes to the value
+  recorded when it was read (so no checkpoint, model or training input changed once evaluation began reading
+  test-day data); file times agree; training declares that it read no test data.
+* `check_evaluated_models`: every learning method's result file records the model it evaluated, and that model
+  is its training source's model.pt, hashing to the model_sha256 of the source's training manifest.
+"""
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import polars as pl
+
+from audits.context import AuditContext, AuditInputError
+from audits.protocol import result_path
+from audits.report import Check
+
+CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt", ".safetensors")
+CLOCK_SLACK_S = 1.0
+"""checkpoint_written_at is recorded to the second: a file time within 1 s of it is the same write."""
+HASH_KEYS = ("checkpoint_sha256", "model_sha256")
+"""Content hashes `dswm.pipeline.jobs.train_job` records; a manifest without them predates content hashing."""
+MODEL_FILE = "model.pt"
+"""The model file of a run directory: the train rule's `model` output, the file the evaluate rule loads."""
+EVAL_OUTPUTS = ("days.parquet", "trajectory.npz")
+
+
+def _manifest(ctx: AuditContext, ds: str, method: str, seed: int) -> tuple[Path, dict]:
+    """The training manifest of the train job of `method` (a training source) on (ds, seed)."""
+    path = ctx.run_dir(ds, method, seed) / "train_manifest.json"
+    try:
+        return path, ctx.ledger.read_json(path)
+    except FileNotFoundError as exc:
+        users = [m for m in ctx.methods if m != method and ctx.learns(m) and ctx.training_source(m) == method]
+        also = f" (whose model {', '.join(users)} also evaluate)" if users else ""
+        raise AuditInputError(f"{ctx.rel(path)}: training manifest missing for learning method {method}{also}") from exc
+    except ValueError as exc:
+        raise AuditInputError(f"{ctx.rel(path)}: not valid JSON ({exc})") from exc
+
+
+def learning_jobs(ctx: AuditContext) -> list[tuple[str, str, int]]:
+    """(dataset, method, seed) of every learning method of the profile."""
+    learners = [m for m in ctx.methods if ctx.learns(m)]
+    return [(ds, m, s) for ds in ctx.datasets for m in learners for s in ctx.seeds(ds)]
+
+
+def training_jobs(ctx: AuditContext) -> dict[tuple[str, str, int], list[str]]:
+    """{(dataset, training source, seed): the learning methods that evaluate its model} of every train job."""
+    out: dict[tuple[str, str, int], list[str]] = {}
+    for ds, method, seed in learning_jobs(ctx):
+        out.setdefault((ds, ctx.training_source(method), seed), []).append(method)
+    return out
+
+
+def check_training_days(ctx: AuditContext) -> Check:
+    """Every learning method records the day of its training data, and all of them are training days."""
+    chk = Check(id="protocol.training_days", family="protocol",
+                claim="Every learning method's training manifest (that of its training source, for a method whose "
+                      "training is identical to an earlier one's) records the tensor day of every pre-collected "
+                      "or replayed transition, and every one of them is a training day.")
+    learners = learning_jobs(ctx)
+    chk.evidence["learning_jobs"] = ({f"{d}/{m}/seed{s}": ctx.rel(ctx.run_dir(d, ctx.training_source(m), s) /
+                                                                  "train_manifest.json") for d, m, s in learners} or
+                                     "none: no method of methods.run learns, nothing to verify")
+    for (ds, method, seed), users in training_jobs(ctx).items():
+        try:
+            path, man = _manifest(ctx, ds, method, seed)
+            labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
+            train = set(ctx.train_index(ds).tolist())
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        where = ctx.rel(path)
+        days = man.get("days")
+        if not isinstance(days, list) or not days:
+            chk.fail(f"{where}: 'days' is {days!r}; expected the tensor day of every transition or sequence used")
+            continue
+        days = [int(d) for d in days]
+        leaked = sorted(set(d for d in days if d not in train))
+        if leaked:
+            chk.fail(f"{where}: training data holds day(s) {[labels.get(d, d) for d in leaked]} (indices {leaked}) "
+                     f"that are not training days — the replay/pre-collected data of {method} holds "
+                     f"{'a test day' if all(d in labels for d in leaked) else 'unknown days'}")
+        if "day_labels" in man and [labels.get(d) for d in days] != list(man["day_labels"]):
+            chk.fail(f"{where}: day_labels disagree with the labels meta.json gives the recorded day indices")
+        per = man.get("transitions_per_day_episode")
+        n = man.get("n_transitions")
+        if per is not None and n is not None and int(n) != int(per) * len(days):
+            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} recorded day episodes x {per} = "
+                     f"{int(per) * len(days)} — some transitions have no recorded day")
+        if per is None and n is not None and int(n) != len(days):
+            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} days are recorded (one per transition "
+                     f"expected)")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {"records": len(days), "distinct_days": len(set(days)),
+                                                     "training_days_covered": f"{len(set(days) & train)}/{len(train)}",
+                                                     "n_transitions": n, "evaluated_by": users}
+    return chk
+
+
+def _parse_utc(text: str) -> float:
+    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc).timestamp()
+
+
+def _under_root(ctx: AuditContext, recorded) -> Path:
+    """A path a manifest records (relative to the workflow's working directory, or absolute)."""
+    p = Path(str(recorded))
+    return p if p.is_absolute() else ctx.root / p
+
+
+def _same_hash(chk: Check, ctx: AuditContext, path: Path, recorded, *, where: str, key: str, leak: str) -> dict:
+    """Compares the SHA-256 of `path` now with the value `where` records under `key`; returns the evidence.
+
+    Nothing is compared when no value is recorded (check_checkpoints reports the missing key once).
+    """
+    found = ctx.ledger.sha256(path)
+    if recorded and found != recorded:
+        chk.fail(f"{ctx.rel(path)}: SHA-256 is {found}, {where} recorded {key} = {recorded} — {leak}")
+    return {"recorded": recorded, "found": found}
+
+
+def _checkpoint(chk: Check, ctx: AuditContext, man: dict, where: str) -> dict:
+    """The recorded checkpoint exists, hashes to checkpoint_sha256 and carries the recorded write time."""
+    ck = man.get("checkpoint")
+    if not ck:
+        chk.fail(f"{where}: no checkpoint recorded")
+        return {}
+    cpath = _under_root(ctx, ck)
+    if not cpath.is_file():
+        chk.fail(f"{where}: recorded checkpoint {ck} does not exist")
+        return {}
+    written = cpath.stat().st_mtime
+    ev = {"checkpoint_sha256": _same_hash(chk, ctx, cpath, man.get("checkpoint_sha256"), where=where,
+                                          key="checkpoint_sha256",
+                                          leak="the checkpoint was rewritten after training ended"),
+          "checkpoint_mtime": written}
+    rec = man.get("checkpoint_written_at")
+    try:
+        rec_t = _parse_utc(str(rec))
+    except ValueError:
+        chk.fail(f"{where}: checkpoint_written_at = {rec!r}; expected YYYY-MM-DDTHH:MM:SSZ")
+        return ev
+    if not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
+        chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
+                 f"checkpoint was rewritten after training ended")
+    return ev
+
+
+def _model(chk: Check, ctx: AuditContext, man: dict, where: str, run: Path) -> dict:
+    """The manifest names the run's model.pt, which hashes to model_sha256."""
+    mpath = run / MODEL_FILE
+    rec = man.get("model")
+    if rec and _under_root(ctx, rec).resolve() != mpath.resolve():
+        chk.fail(f"{where}: model = {rec!r}; expected {ctx.rel(mpath)}, the file the evaluation loads")
+    if not mpath.is_file():
+        chk.fail(f"{ctx.rel(mpath)}: missing; the evaluation of a learning method loads it")
+        return {}
+    return {"model_sha256": _same_hash(chk, ctx, mpath, man.get("model_sha256"), where=where, key="model_sha256",
+                                       leak="the model file was rewritten after training ended")}
+
+
+def _data_files(chk: Check, ctx: AuditContext, man: dict, where: str, ds: str) -> dict:
+    """data_files_read lists {path, sha256} of the dataset's prepared files, each unchanged since training."""
+    entries = man.get("data_files_read")
+    if (not isinstance(entries, list) or not entries or
+            not all(isinstance(e, dict) and {"path", "sha256"} <= set(e) for e in entries)):
+        chk.fail(f"{where}: data_files_read = {entries!r}; expected a list of {{path, sha256}} of the prepared "
+                 f"files training read — the manifest predates content hashing; re-run the train job")
+        return {}
+    ev = {}
+    for e in entries:
+        path = _under_root(ctx, e["path"])
+        if path.name in EVAL_OUTPUTS:
+            chk.fail(f"{where}: training read evaluation output {e['path']}")
+        if not path.is_file():
+            chk.fail(f"{where}: data_files_read names {e['path']}, which does not exist; expected the file "
+                     f"training read, unchanged")
+            continue
+        ev[ctx.rel(path)] = _same_hash(chk, ctx, path, e["sha256"], where=where,
+                                       key=f"data_files_read[{e['path']!r}].sha256",
+                                       leak="a training input changed after training")
+    read = {_under_root(ctx, e["path"]).resolve() for e in entries}
+    for need in (ctx.tensor_path(ds), ctx.meta_path(ds)):
+        if need.resolve() not in read:
+            chk.fail(f"{where}: data_files_read lacks {ctx.rel(need)}; expected the prepared files of {ds} "
+                     f"the train job loads")
+    return ev
+
+
+def check_checkpoints(ctx: AuditContext) -> Check:
+    """Checkpoint, model and training inputs unchanged since training; training declares no test data read."""
+    chk = Check(id="protocol.checkpoints", family="protocol",
+                tolerance=f"contents: SHA-256 equal; file times within {CLOCK_SLACK_S:g} s "
+                          f"(checkpoint_written_at is recorded to the second)",
+                claim="Every train job's checkpoint and model file hash to the SHA-256 its training manifest "
+                      "recorded when training ended, and the prepared tensor and meta.json it read hash to the "
+                      "values recorded when it read them, so none changed once evaluation began reading test-day "
+                      "data; no checkpoint file is newer than the manifest; no result file that evaluates the "
+                      "model is older than it; training declares it read no test data.")
+    for (ds, method, seed), users in training_jobs(ctx).items():
+        try:
+            mpath, man = _manifest(ctx, ds, method, seed)
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        where, run = ctx.rel(mpath), ctx.run_dir(ds, method, seed)
+        if "read_test_data" not in man:
+            chk.fail(f"{where}: read_test_data is not recorded; expected false (training reads no test-day data)")
+        elif man["read_test_data"] is not False:
+            chk.fail(f"{where}: read_test_data = {man['read_test_data']!r}; expected false — training read "
+                     f"test-day data")
+        missing = [k for k in HASH_KEYS if not man.get(k)]
+        if missing:
+            chk.fail(f"{where}: no {' or '.join(missing)} recorded — the manifest predates content hashing; "
+                     f"re-run the train job of {ds}/{method}/seed{seed}")
+        closed = mpath.stat().st_mtime
+        ev: dict = {"manifest_closed": closed, **_checkpoint(chk, ctx, man, where), **_model(chk, ctx, man, where, run),
+                    "data_files_read": _data_files(chk, ctx, man, where, ds)}
+        for f in sorted(run.rglob("*")) if run.is_dir() else []:
+            if f.is_file() and f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
+                chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
+                         f"at {_iso(closed)} — a checkpoint written after reading test-day data")
+        for user in users:
+            result = result_path(ctx, ds, user, seed)
+            if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
+                chk.fail(f"{ctx.rel(result)}: written before its training manifest {where} closed — the "
+                         f"evaluation did not use the final checkpoint")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {**ev, "evaluated_by": users}
+    return chk
+
+
+def check_evaluated_models(ctx: AuditContext) -> Check:
+    """Every learning evaluation loaded its training source's model, the one that source's manifest records."""
+    from dswm.protocol.evaluation import MODEL_RECORD_KEY, read_model_record
+
+    chk = Check(id="protocol.evaluated_models", family="protocol",
+                claim="Every learning method's result file records the model it evaluated: the model.pt of its "
+                      "training source (the first method of methods.run whose training is identical; the method "
+                      "itself otherwise) and that source's training manifest; the SHA-256 taken when the "
+                      "evaluation loaded it and the SHA-256 of the file now both equal the manifest's model_sha256.")
+    for ds, method, seed in learning_jobs(ctx):
+        source = ctx.training_source(method)
+        days = result_path(ctx, ds, method, seed)
+        where = ctx.rel(days)
+        want_model = ctx.run_dir(ds, source, seed) / MODEL_FILE
+        want_manifest = ctx.run_dir(ds, source, seed) / "train_manifest.json"
+        try:
+            rec = read_model_record(ctx.ledger.track(days))
+        except FileNotFoundError:
+            chk.fail(f"{where}: result file missing (run the evaluate rule)")
+            continue
+        except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
+            chk.fail(f"{where}: unreadable ({exc})")
+            continue
+        if rec is None:
+            chk.fail(f"{where}: no {MODEL_RECORD_KEY} record in its metadata; expected the model file the "
+                     f"evaluation loaded, its SHA-256 and its training source — the result predates model "
+                     f"recording; re-run the evaluate job of {ds}/{method}/seed{seed}")
+            continue
+        if rec.get("train_source") != source:
+            chk.fail(f"{where}: train_source = {rec.get('train_source')!r}, expected {source!r} (the training "
+                     f"source config.yaml gives {method})")
+        claimed = rec.get("train_manifest")
+        if not claimed or _under_root(ctx, claimed).resolve() != want_manifest.resolve():
+            chk.fail(f"{where}: train_manifest = {claimed!r}, expected {ctx.rel(want_manifest)}")
+        if not rec.get("model"):
+            chk.fail(f"{where}: model = {rec.get('model')!r}, expected {ctx.rel(want_model)}, the model {source} "
+                     f"trained")
+            continue
+        mpath = _under_root(ctx, rec["model"])
+        if mpath.resolve() != want_model.resolve():
+            chk.fail(f"{where}: model = {rec['model']!r}, expected {ctx.rel(want_model)}, the model {source} trained")
+        try:
+            _, man = _manifest(ctx, ds, source, seed)
+        except AuditInputError as exc:
+            chk.fail(str(exc))
+            continue
+        expected = man.get("model_sha256")
+        if not expected:
+            chk.fail(f"{ctx.rel(want_manifest)}: no model_sha256 recorded — the manifest predates content hashing; "
+                     f"re-run the train job of {ds}/{source}/seed{seed}")
+            continue
+        loaded = rec.get("model_sha256")
+        if loaded != expected:
+            chk.fail(f"{where}: the evaluation loaded {ctx.rel(mpath)} with SHA-256 {loaded}, expected {expected} "
+                     f"(model_sha256 of {ctx.rel(want_manifest)}) — {method} was evaluated with a model {source} "
+                     f"did not train")
+        found = ctx.ledger.sha256(mpath) if mpath.is_file() else None
+        if found is None:
+            chk.fail(f"{ctx.rel(mpath)}: missing; {where} records it as the model it evaluated")
+        elif found != expected:
+            chk.fail(f"{ctx.rel(mpath)}: SHA-256 is {found}, expected {expected} (model_sha256 of "
+                     f"{ctx.rel(want_manifest)}, which {where} names) — not the model {source} trained")
+        chk.evidence[f"{ds}/{method}/seed{seed}"] = {"train_source": source, "model": ctx.rel(mpath),
+                                                     "expected": expected, "loaded": loaded, "found": found}
+    return chk
+
+
+def _iso(t: float) -> str:
+    return dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")

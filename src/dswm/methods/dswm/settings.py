@@ -1,0 +1,63 @@
+"""DSWM's typed settings: config.yaml's ``dswm`` section resolved for one method under one profile.
+
+``dswm``, ``dswm_wo_unc`` and ``dswm_wo_dec`` are configurations of the same code: each method's overrides
+(``dswm.methods.<method>``) and the profile's planner reductions (``dswm.budgets.<profile>.planner``) are
+merged over the base sections, and the result is built by the project's one typed builder.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+from dswm.config import ConfigError, build, merge
+from dswm.methods.dswm.planner import PlannerConfig
+from dswm.methods.dswm.training import TrainConfig
+from dswm.methods.dswm.world_model import WorldModelConfig
+
+METHODS = ("dswm", "dswm_wo_unc", "dswm_wo_dec")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DSWMSettings:
+    """Resolved settings of one DSWM method under one profile."""
+
+    device: str
+    """Torch device of the world model, its training and planning."""
+    world_model: WorldModelConfig
+    """config.yaml ``dswm.world_model`` (its RSSM keys under ``rssm``)."""
+    training: TrainConfig
+    transitions: int
+    """Pre-collected training transitions (``dswm.budgets.<profile>.transitions``)."""
+    steps: int
+    """Gradient steps (``dswm.budgets.<profile>.steps``)."""
+    planner: PlannerConfig | None
+    """The decision-time planner; None in the part a train job receives (training does not plan)."""
+
+
+def resolve(dswm: Mapping[str, Any], *, method: str, profile: str) -> DSWMSettings:
+    """Resolve config.yaml's ``dswm`` section for ``method`` under ``profile``.
+
+    Raises:
+        ConfigError: the method or profile has no entry, a merged section has an unknown, missing or mistyped
+            key, or the merged planner's ``n_elites`` is not in [1, n_samples] (the one cross-key check the
+            schema cannot make: it sees each section, not the merged planner).
+    """
+    if method not in dswm["methods"]:
+        raise ConfigError(f"config.yaml: key 'dswm.methods' has no entry {method!r} (found {sorted(dswm['methods'])})")
+    budgets = dswm["budgets"]
+    if profile not in budgets:
+        raise ConfigError(f"config.yaml: key 'dswm.budgets' has no entry {profile!r} (found {sorted(budgets)})")
+    over = dswm["methods"].get(method) or {}
+    budget = budgets[profile]
+    planner = build(PlannerConfig, merge(merge(dswm["planner"], budget.get("planner")), over.get("planner")),
+                    "dswm.planner")
+    if not 1 <= planner.n_elites <= planner.n_samples:
+        raise ConfigError(f"config.yaml: method {method!r}: key 'dswm.planner.n_elites' must lie in [1, n_samples] (after the "
+                          f"'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides); found "
+                          f"n_elites={planner.n_elites}, n_samples={planner.n_samples}")
+    return DSWMSettings(
+        device=str(dswm["device"]),
+        world_model=WorldModelConfig.from_flat(merge(dswm["world_model"], over.get("world_model")),
+                                               "dswm.world_model"),
+        training=build(TrainConfig, merge(dswm["training"], over.get("training")), "dswm.training"),
+        transitions=int(budget["transitions"]), steps=int(budget["steps"]), planner=planner)

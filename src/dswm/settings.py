@@ -1,0 +1,443 @@
+"""The settings of a run, resolved once: schema validation, profile selection, one typed :class:`Settings`.
+
+``config.yaml`` holds every section; ``profiles:`` holds the three sizes of the same pipeline (demo, smoke,
+paper). :func:`resolve` validates the file against ``workflow/schemas/config.schema.yaml``, selects the profile
+and builds every section with the one typed builder (``dswm.config.build``), the methods' own settings
+included. It runs once, while Snakemake parses the workflow, so a bad config stops the run before any job
+starts, with a message that names the key, what was expected and what was found.
+
+Jobs never see config.yaml: each rule passes its job the slice of :class:`Settings` the job reads, in canonical
+form (:func:`dswm.config.canonical_json`, sorted keys), and that slice is the rule's rerun trigger. The slices
+are built here (``*_slice``) and read back in the job by the same builder. Settings that change only how a
+job reports (the progress bar's refresh interval) are passed beside the slice as a typed object, which
+Snakemake does not compare, so changing them reruns nothing (docs/PIPELINE.md).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import jsonschema
+import yaml
+
+from dswm.config import ConfigError, build, canonical_json, stable_hash, to_plain
+from dswm.methods import registry
+from dswm.sim.scenario import Scenario
+from prep.config import DATASETS, DatasetsConfig
+
+SPLITS = ("id", "ood")
+
+
+def load_schema(path: str | Path) -> dict:
+    """Read the YAML JSON-schema of config.yaml."""
+    with Path(path).open() as fh:
+        return yaml.safe_load(fh)
+
+
+def _key(path: Iterable[Any]) -> str:
+    """Dotted key of a path into the config, e.g. ``profiles.demo.seeds.milan[0]``."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "(top level)"
+
+
+def _describe(schema: Mapping[str, Any]) -> str:
+    """The expected form of a value, from the schema's description or its type keywords."""
+    if "description" in schema:
+        return str(schema["description"])
+    if "enum" in schema:
+        return "one of " + ", ".join(repr(v) for v in schema["enum"])
+    kind = schema.get("type", "a value")
+    kind = " or ".join(kind) if isinstance(kind, list) else kind
+    bounds = [f"{word} {schema[k]}" for k, word in (("minimum", ">="), ("maximum", "<="),
+                                                   ("exclusiveMinimum", ">"), ("minItems", "with at least"))
+              if k in schema]
+    return f"{kind}" + (f" ({', '.join(bounds)})" if bounds else "")
+
+
+def _message(err: jsonschema.ValidationError, source: str) -> str:
+    """One readable line for a schema violation: the key, what was expected, what was found."""
+    where = _key(err.absolute_path)
+    if err.validator == "additionalProperties":
+        allowed = sorted(err.schema.get("properties", {}))
+        unknown = sorted(set(err.instance) - set(allowed))
+        lines = []
+        for name in unknown:
+            if err.schema.get("patternProperties"):
+                pattern = ", ".join(err.schema["patternProperties"])
+                lines.append(f"{source}: key '{_key([*err.absolute_path, name])}' is not a valid name "
+                             f"(expected a name matching {pattern})")
+                continue
+            near = difflib.get_close_matches(name, allowed, n=1)
+            hint = (f"; did you mean '{near[0]}'?" if near else
+                    "; a new setting is declared in workflow/schemas/config.schema.yaml")
+            lines.append(f"{source}: unknown key '{_key([*err.absolute_path, name])}' (expected one of "
+                         f"{', '.join(allowed)}){hint}")
+        return "\n".join(lines)
+    if err.validator == "required":
+        missing = err.message.split("'")[1]
+        sub = err.schema.get("properties", {}).get(missing, {})
+        return f"{source}: missing key '{_key([*err.absolute_path, missing])}' (expected {_describe(sub)})"
+    return f"{source}: key '{where}' must be {_describe(err.schema)}; found {err.instance!r}"
+
+
+def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml") -> None:
+    """Check ``config`` against the schema; raise ConfigError listing every violation, one per line.
+
+    Args:
+        config: the parsed config.yaml (with any ``--config`` overrides applied).
+        schema: the parsed workflow/schemas/config.schema.yaml.
+        source: file name used in messages.
+    """
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    if errors:
+        raise ConfigError("invalid configuration:\n" + "\n".join(_message(e, source) for e in errors))
+
+
+SCHEMA = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
+"""The JSON schema of config.yaml."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvalDayLimits:
+    """At most this many of each split's evaluation days (None: every configured day)."""
+
+    id: int | None
+    ood: int | None
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RunSettings:
+    """The selected profile (``profiles.<profile>``)."""
+
+    datasets: tuple[str, ...]
+    seeds: dict[str, tuple[int, ...]]
+    eval_days: EvalDayLimits
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvaluationSettings:
+    """config.yaml ``evaluation`` less the display setting (:class:`Display`)."""
+
+    device: str
+    torch_threads: int
+    batch_days: bool
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Runtime:
+    """Where and on how many threads a job computes: the part of ``evaluation`` that training and calibration
+    read (``batch_days`` concerns evaluation only)."""
+
+    device: str
+    torch_threads: int
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Display:
+    """Settings that change how a job reports, never what it writes; passed beside a job's settings slice and
+    not part of any rerun trigger."""
+
+    progress_mininterval_s: float
+    """tqdm refresh interval in a job's log (config.yaml ``evaluation.progress_mininterval_s``)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class CalibrationSettings:
+    dataset: str
+    target_served_ratio: float
+    bracket: tuple[float, float]
+    tolerance: float
+    max_iter: int
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MlflowSettings:
+    store: str
+    artifacts: str
+    experiment: str
+    batch_size: int
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SplitLabels:
+    id: str
+    ood: str
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TablesSettings:
+    main_dataset: str
+    decimals: int
+    split_labels: SplitLabels
+    class_order: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MethodSettings:
+    """One method of ``methods.run``: its registration and its typed settings."""
+
+    name: str
+    target: str
+    """The controller class, "package.module:ClassName"."""
+    label: str
+    """Row label in the tables."""
+    table_class: str
+    """Class column of Table III."""
+    learns: bool
+    """Trained by the ``train`` rule before evaluation."""
+    training_source: str | None
+    """The method whose trained model this one evaluates (itself, or an earlier one with identical training);
+    None for a method that does not learn."""
+    options: Any
+    """The typed settings of the controller class (its ``options_type``), or None."""
+
+    @property
+    def controller_class(self):
+        return registry.load_class(self.target, key=f"methods.{self.name}")
+
+    @classmethod
+    def from_plain(cls, data: Mapping[str, Any], where: str = "method") -> "MethodSettings":
+        """Back from :func:`dswm.config.to_plain` form; the options are rebuilt as the class's typed settings."""
+        entry = build(cls, data, where)
+        options = entry.controller_class.options_from_plain(name=entry.name, data=data["options"],
+                                                            where=f"{where}.options")
+        return dataclasses.replace(entry, options=options)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Settings:
+    """Every setting of a run under its selected profile, typed; built once by :func:`resolve`."""
+
+    profile: str
+    run: RunSettings
+    scenario: Scenario
+    evaluation: EvaluationSettings
+    methods: dict[str, MethodSettings]
+    """The methods of ``methods.run``, in that order (table order within a table class)."""
+    calibration: CalibrationSettings
+    mlflow: MlflowSettings
+    tables: TablesSettings
+    datasets: DatasetsConfig
+    display: Display | None
+    """None in a job's slice: display settings travel beside it."""
+
+    def seeds(self, dataset: str) -> list[int]:
+        """Seeds of ``dataset`` in the selected profile."""
+        return list(self.run.seeds[dataset])
+
+    def jobs(self) -> list[tuple[str, str, int]]:
+        """Every (dataset, method, seed) evaluation job of the selected profile, in table order."""
+        return [(ds, m, s) for ds in self.run.datasets for m in self.methods for s in self.seeds(ds)]
+
+    def training_sources(self) -> dict[str, str]:
+        """{learning method: the method whose trained model it evaluates}."""
+        return {m.name: m.training_source for m in self.methods.values() if m.learns}
+
+    def trained(self) -> list[str]:
+        """The learning methods the ``train`` rule fits (their own training source)."""
+        return [m.name for m in self.methods.values() if m.learns and m.training_source == m.name]
+
+    def hash(self) -> str:
+        """Hash of these settings (display settings aside); tags the audit report."""
+        return stable_hash(to_plain(dataclasses.replace(self, display=None)), length=12)
+
+    @classmethod
+    def from_plain(cls, data: Mapping[str, Any], where: str = "settings") -> "Settings":
+        """Back from :func:`dswm.config.to_plain` form (a job's slice); method settings typed by their class."""
+        fixed = {"methods": {name: MethodSettings.from_plain(m, f"{where}.methods.{name}")
+                             for name, m in data["methods"].items()},
+                 "scenario": Scenario.from_dict(data["scenario"], where=f"{where}.scenario")}
+        return build(cls, {k: v for k, v in data.items() if k not in fixed}, where, **fixed)
+
+
+def select_profile(config: Mapping[str, Any]) -> dict:
+    """The selected ``profiles.<profile>`` entry of a validated config."""
+    name = config["profile"]
+    profiles = config["profiles"]
+    if name not in profiles:
+        raise ConfigError(f"config.yaml: key 'profile' must be one of {', '.join(profiles)}; found {name!r} "
+                          f"(select one with --config profile=NAME)")
+    return profiles[name]
+
+
+def _methods(config: Mapping[str, Any], profile: str) -> dict[str, MethodSettings]:
+    """Every method of ``methods.run`` with its class, typed settings and training source."""
+    section = config["methods"]
+    found: dict[str, tuple] = {}
+    for name in section["run"]:
+        s = registry.spec(name, section)
+        cls = registry.load_class(s.target, key=f"methods.user.{name}.class" if name in section.get("user", {})
+                                  else "methods.run")
+        found[name] = (s, cls, cls.options_from_config(name=name, config=config, profile=profile))
+    sources = registry.training_sources({n: (cls, opt) for n, (_, cls, opt) in found.items() if cls.learns})
+    return {n: MethodSettings(name=n, target=s.target, label=s.label, table_class=s.table_class,
+                              learns=bool(cls.learns), training_source=sources.get(n), options=opt)
+            for n, (s, cls, opt) in found.items()}
+
+
+def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
+            schema: str | Path | None = None) -> Settings:
+    """Validate config.yaml (with any ``--config`` overrides) and resolve it into one typed :class:`Settings`.
+
+    Args:
+        config: the parsed config mapping.
+        root: where ``datasets.<name>.raw_files`` are looked up; None skips that check (a job's own files).
+        schema: the JSON schema (default :data:`SCHEMA`).
+
+    Raises:
+        ConfigError: every schema violation, one per line; or the first cross-key mistake (a profile's dataset
+            without a section or seeds, an unregistered method, a merged DSWM planner with n_elites > n_samples,
+            a ``tables.main_dataset`` the profile does not run, raw files that are not there).
+    """
+    validate_config(config, load_schema(schema or SCHEMA))
+    profile = str(config["profile"])
+    run = select_profile(config)
+    check_profile_datasets(config, run)
+    evaluation = dict(config["evaluation"])
+    display = Display(progress_mininterval_s=float(evaluation.pop("progress_mininterval_s")))
+    settings = Settings(
+        profile=profile,
+        run=build(RunSettings, run, f"profiles.{profile}"),
+        scenario=Scenario.from_dict(config["scenario"]),
+        evaluation=build(EvaluationSettings, evaluation, "evaluation"),
+        methods=_methods(config, profile),
+        calibration=build(CalibrationSettings, config["calibration"], "calibration"),
+        mlflow=build(MlflowSettings, config["mlflow"], "mlflow"),
+        tables=build(TablesSettings, config["tables"], "tables"),
+        datasets=build(DatasetsConfig, config["datasets"], "datasets"),
+        display=display)
+    if settings.tables.main_dataset not in settings.run.datasets:
+        raise ConfigError(f"config.yaml: key 'tables.main_dataset' is {settings.tables.main_dataset!r}, which "
+                          f"profile {profile!r} does not run (profiles.{profile}.datasets: "
+                          f"{', '.join(settings.run.datasets)})")
+    if root is not None:
+        check_raw_files(settings, root)
+    return settings
+
+
+def check_profile_datasets(config: Mapping[str, Any], run: Mapping[str, Any]) -> None:
+    """Every dataset the profile runs has a ``datasets:`` section and a seed list."""
+    known = [d for d in config.get("datasets", {}) if d in DATASETS]
+    for ds in run["datasets"]:
+        if ds not in known:
+            raise ConfigError(f"config.yaml: key 'profiles.{config['profile']}.datasets' names {ds!r}, which has "
+                              f"no section under 'datasets' (expected one of {', '.join(sorted(known))})")
+        if ds not in run["seeds"]:
+            raise ConfigError(f"config.yaml: key 'profiles.{config['profile']}.seeds.{ds}' is missing "
+                              f"(expected a non-empty list of integer seeds, e.g. [0, 1])")
+
+
+def check_raw_files(settings: Settings, root: str | Path) -> None:
+    """Every dataset with ``source: raw`` that the profile runs has its raw files on disk.
+
+    Args:
+        settings: the resolved settings.
+        root: the directory the paths and globs of ``datasets.<name>.raw_files`` are relative to.
+    """
+    root = Path(root)
+    for ds in settings.run.datasets:
+        section = getattr(settings.datasets, ds)
+        if section.source != "raw":
+            continue
+        for i, pattern in enumerate(section.raw_files):
+            path = Path(pattern)
+            base = path if path.is_absolute() else root / path
+            if any(c in str(pattern) for c in "*?["):
+                anchor = Path(base.anchor)
+                found = list(anchor.glob(str(base.relative_to(anchor))))
+            else:
+                found = [base] if base.exists() else []
+            if not found:
+                raise ConfigError(f"config.yaml: key 'datasets.{ds}.raw_files[{i}]' = {pattern!r} matches no file "
+                                  f"under {root} (expected the published raw file(s) of {ds}; download them, or "
+                                  f"set 'datasets.{ds}.source: demo')")
+
+
+@dataclasses.dataclass(frozen=True)
+class Untracked:
+    """A value a rule passes its job that is not part of its rerun trigger (Snakemake compares only plain
+    params): how a job reports or tags its run, never what it computes."""
+
+    value: Any
+
+
+def evaluated_as(settings: Settings, method: str) -> list[str]:
+    """The methods whose evaluations load the model that ``method`` trains (an MLflow tag of its train run)."""
+    return [m for m, src in settings.training_sources().items() if src == method] or [method]
+
+
+# ---- the slices each rule passes its job ----------------------------------------------------------------
+def param(obj: Any) -> str:
+    """A rule's ``params`` value: ``obj`` in canonical JSON (equal settings give equal text)."""
+    return canonical_json(obj)
+
+
+def read_param(text: str) -> dict:
+    """A job's side of :func:`param`: the plain mapping back."""
+    return json.loads(text)
+
+
+def runtime(settings: Settings) -> dict:
+    """The :class:`Runtime` part of ``evaluation``, plain."""
+    return {"device": settings.evaluation.device, "torch_threads": settings.evaluation.torch_threads}
+
+
+def prep_slice(settings: Settings, dataset: str) -> dict:
+    """What the ``demo_raw`` and ``prepare`` jobs of ``dataset`` read: its section and the common one."""
+    return {"dataset": dataset, "settings": to_plain(getattr(settings.datasets, dataset)),
+            "common": to_plain(settings.datasets.common)}
+
+
+def eda_slice(settings: Settings) -> dict:
+    """What the ``eda`` job reads: the share of cells of the "top cells" statistic."""
+    return {"top_share_frac": settings.datasets.common.top_share_frac}
+
+
+def mlflow_slice(settings: Settings) -> dict:
+    """What the ``mlflow_init`` job reads."""
+    return to_plain(settings.mlflow)
+
+
+def calibrate_slice(settings: Settings) -> dict:
+    """What the ``calibrate`` job reads: the calibration, the scenario less the value it calibrates, and the
+    device and threads (:class:`Runtime`)."""
+    scenario = to_plain(settings.scenario)
+    scenario.pop("demand_intensity")
+    return {"calibration": to_plain(settings.calibration), "scenario": scenario, "runtime": runtime(settings)}
+
+
+def train_slice(settings: Settings, method: str) -> dict:
+    """What a ``train`` job of ``method`` reads: the profile, the scenario, the device and threads
+    (:class:`Runtime`), MLflow, and the method with only its training settings (so decision-time settings never
+    retrain)."""
+    m = settings.methods[method]
+    cls = m.controller_class
+    entry = dataclasses.replace(m, options=cls.training_settings(m.options))
+    return {"profile": settings.profile, "scenario": to_plain(settings.scenario), "runtime": runtime(settings),
+            "mlflow": to_plain(settings.mlflow), "method": to_plain(entry)}
+
+
+def evaluate_slice(settings: Settings, method: str) -> dict:
+    """What an ``evaluate`` job of ``method`` reads: the profile, the day limits, the scenario, the evaluation
+    settings, MLflow, and the method with all its settings."""
+    return {"profile": settings.profile, "eval_days": to_plain(settings.run.eval_days),
+            "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
+            "mlflow": to_plain(settings.mlflow), "method": to_plain(settings.methods[method])}
+
+
+def tables_slice(settings: Settings) -> dict:
+    """What the ``tables`` job reads: the profile, the tables section, the datasets and the methods' rows."""
+    return {"profile": settings.profile, "tables": to_plain(settings.tables), "datasets": list(settings.run.datasets),
+            "methods": [{"name": m.name, "label": m.label, "table_class": m.table_class}
+                        for m in settings.methods.values()]}
+
+
+def audit_slice(settings: Settings) -> dict:
+    """What the audit reads: every setting but the display ones."""
+    return to_plain(dataclasses.replace(settings, display=None))
