@@ -2,7 +2,7 @@
 
 The three methods are configurations of the same code (config.yaml ``dswm.methods``): ``dswm_wo_unc`` sets
 lambda_u = 0, ``dswm_wo_dec`` replaces the decomposed physics head by an SR-MLP on the latent state. The
-profile (``profile:`` of the resolved config) selects ``dswm.budgets.<profile>``: collected transitions,
+profile selects ``dswm.budgets.<profile>`` (``dswm.methods.dswm.settings.resolve``): collected transitions,
 gradient steps and any planner-size reductions.
 
 Per slot (Algorithm 1): filter o_t into the posterior, then CEM over H-slot sequences scored by
