@@ -154,7 +154,8 @@ def evaluate_static(settings: Settings, root: Path, ds: str, seed: int) -> Path:
 
     scenario, t, _, _, _ = _hashes(settings, root, ds)
     res = evaluate(tensor=t, controller=StaticController(name="static", seed=seed), scenario=scenario, seed=seed,
-                   limits=_limits(settings), profile=settings.profile, progress_interval_s=60.0)
+                   limits=_limits(settings), profile=settings.profile, device=settings.evaluation.device,
+                   batch_days=settings.evaluation.batch_days, progress_interval_s=60.0)
     run = root / "results" / ds / "static" / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
     write_days(res.days, run / "days.parquet", model_record(settings, root, ds, "static", seed))

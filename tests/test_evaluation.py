@@ -14,6 +14,8 @@ from prep.tensor import DemandTensor, GridSpec
 
 HOVER_W = 168.48  # docs/PROTOCOL.md §1: hover power of the rotary-wing model
 
+RUN = {"device": "cpu", "batch_days": True, "progress_interval_s": 5.0}  # how each call runs, not what it computes
+
 
 def toy_tensor(n_train=3, n_test=4, rows=6, cols=6, seed=0):
     """A small prepared-tensor stand-in: days 0..n_train-1 train, the rest test; ID = test 0,1; OOD = 2,3."""
@@ -37,7 +39,7 @@ def big_battery(make_scenario):
 def test_static_day_score_is_the_mean_of_144_served_ratios_of_the_fixed_fleet(big_battery):
     t = toy_tensor()
     res = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
-                   limits={"id": None, "ood": None}, profile="smoke")
+                   limits={"id": None, "ood": None}, profile="smoke", **RUN)
     grid = Grid(rows=6, cols=6, cell_m=235.0)
     pos = torch.tensor(initial_deployment(t, grid, big_battery))[None]
     params = ServiceParams.from_scenario(big_battery)
@@ -62,9 +64,9 @@ def test_static_day_score_is_the_mean_of_144_served_ratios_of_the_fixed_fleet(bi
 def test_profile_limits_cut_each_split_and_change_the_eval_days_hash(big_battery):
     t = toy_tensor()
     full = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
-                    limits={"id": None, "ood": None}, profile="demo").days
+                    limits={"id": None, "ood": None}, profile="demo", **RUN).days
     cut = evaluate(tensor=t, controller=StaticController(name="static"), scenario=big_battery, seed=0,
-                   limits={"id": 1, "ood": 1}, profile="smoke").days
+                   limits={"id": 1, "ood": 1}, profile="smoke", **RUN).days
     assert cut["day"].to_list() == [3, 5]
     assert cut["eval_days_hash"][0] != full["eval_days_hash"][0]
     assert cut["eval_days_hash"][0] == eval_days_hash("toy", {"id": [3], "ood": [5]}, [f"d{i}" for i in range(7)])
@@ -76,7 +78,7 @@ def test_profile_limits_cut_each_split_and_change_the_eval_days_hash(big_battery
 def test_trajectories_hold_positions_per_slot_of_the_first_id_and_ood_day(scenario):
     t = toy_tensor()
     res = evaluate(tensor=t, controller=StaticController(name="static"), scenario=scenario, seed=0,
-                   limits={"id": None, "ood": None}, profile="demo")
+                   limits={"id": None, "ood": None}, profile="demo", **RUN)
     tr = res.trajectories
     assert int(tr["id_day"]) == 3 and int(tr["ood_day"]) == 5 and str(tr["ood_label"]) == "d5"
     assert tr["id_pos"].shape == (144, scenario.n_uavs, 2) and tr["ood_status"].shape == (144, scenario.n_uavs)
@@ -89,8 +91,9 @@ def test_trajectories_hold_positions_per_slot_of_the_first_id_and_ood_day(scenar
 def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_scenario):
     scn = make_scenario(n_uavs=3, demand_intensity=150.0)
     t = toy_tensor(n_test=4)
-    runs = [evaluate(tensor=t, controller=GreedyController(name="greedy", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=())), scenario=scn,
-                     seed=1, limits={"id": None, "ood": 1}, profile="demo", batch_days=b).days
+    greedy = GreedyController(name="greedy", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=()))
+    runs = [evaluate(tensor=t, controller=greedy, scenario=scn, seed=1, limits={"id": None, "ood": 1}, profile="demo",
+                     device="cpu", batch_days=b, progress_interval_s=5.0).days
             for b in (True, False, True)]
     cols = ["day", "sr_mean", "energy_kj_per_slot", "jain"]
     np.testing.assert_allclose(runs[0].select(cols).to_numpy(), runs[1].select(cols).to_numpy(), rtol=1e-5)

@@ -71,7 +71,7 @@ def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str
 
 
 def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, limits: Mapping[str, int | None],
-             profile: str, device: str = "cpu", batch_days: bool = True, progress_interval_s: float = 5.0,
+             profile: str, device: str, batch_days: bool, progress_interval_s: float,
              trajectory: bool = True) -> EvalResult:
     """Run ``controller`` on the evaluation days of ``tensor``.
 

@@ -228,8 +228,8 @@ class ImaginationScorer:
 
     def __init__(self, *, model, latent: LatentState | None, fleet: FleetState, x_now: torch.Tensor,
                  geom: Geometry, scenario: Scenario, params: ServiceParams, cells: torch.Tensor, gamma: float,
-                 rho: float, lambda_u: float, continuation: str = "hold",
-                 demand_override: torch.Tensor | None = None, compile: bool = False):
+                 rho: float, lambda_u: float, continuation: str, compile: bool,
+                 demand_override: torch.Tensor | None = None):
         """Args:
             model: a ``WorldModel`` (may be None only with ``demand_override``).
             latent: posterior state at t, fields (1, .); fleet: FleetState at t with fields (K, ...).
