@@ -28,9 +28,6 @@ from dswm.methods import registry
 from dswm.sim.scenario import Scenario
 from prep.config import DATASETS, DatasetsConfig
 
-SPLITS = ("id", "ood")
-
-
 def load_schema(path: str | Path) -> dict:
     """Read the YAML JSON-schema of config.yaml."""
     with Path(path).open() as fh:
@@ -201,6 +198,11 @@ class MethodSettings:
     def controller_class(self):
         return registry.load_class(self.target, key=f"methods.{self.name}")
 
+    @property
+    def spec(self) -> registry.MethodSpec:
+        """The method's registration: class path, table label and table class."""
+        return registry.MethodSpec(name=self.name, target=self.target, label=self.label, table_class=self.table_class)
+
     @classmethod
     def from_plain(cls, data: Mapping[str, Any], where: str = "method") -> "MethodSettings":
         """Back from :func:`dswm.config.to_plain` form; the options are rebuilt as the class's typed settings."""
@@ -271,9 +273,7 @@ def _methods(config: Mapping[str, Any], profile: str) -> dict[str, MethodSetting
     section = config["methods"]
     found: dict[str, tuple] = {}
     for name in section["run"]:
-        s = registry.spec(name, section)
-        cls = registry.load_class(s.target, key=f"methods.user.{name}.class" if name in section.get("user", {})
-                                  else "methods.run")
+        s, cls = registry.lookup(name, section)
         found[name] = (s, cls, cls.options_from_config(name=name, config=config, profile=profile))
     sources = registry.training_sources({n: (cls, opt) for n, (_, cls, opt) in found.items() if cls.learns})
     return {n: MethodSettings(name=n, target=s.target, label=s.label, table_class=s.table_class,
@@ -434,8 +434,7 @@ def evaluate_slice(settings: Settings, method: str) -> dict:
 def tables_slice(settings: Settings) -> dict:
     """What the ``tables`` job reads: the profile, the tables section, the datasets and the methods' rows."""
     return {"profile": settings.profile, "tables": to_plain(settings.tables), "datasets": list(settings.run.datasets),
-            "methods": [{"name": m.name, "label": m.label, "table_class": m.table_class}
-                        for m in settings.methods.values()]}
+            "methods": [to_plain(m.spec) for m in settings.methods.values()]}
 
 
 def audit_slice(settings: Settings) -> dict:

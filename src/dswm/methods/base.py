@@ -93,8 +93,8 @@ class Controller:
         """The typed settings back from their plain form (a job's settings slice, ``dswm.config.to_plain``)."""
         if cls.options_type is None:
             if data:
-                raise ConfigError(f"config key {where or 'methods.' + name}: method {name!r} declares no options_type (a keyword-only dataclass of its settings); "
-                                  f"found {data!r}")
+                raise ConfigError(f"config key {where or 'methods.' + name}: method {name!r} declares no "
+                                  f"options_type (a keyword-only dataclass of its settings); found {data!r}")
             return None
         return build(cls.options_type, data if data is not None else {}, where or f"methods.{name}")
 

@@ -70,8 +70,12 @@ class GreedyController(BatchedController):
     options_type: ClassVar[type] = SearchSettings
 
     def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: SearchSettings):
-        super().__init__(name=name, seed=seed, device=device)
-        self.search = options
+        super().__init__(name=name, seed=seed, device=device, options=options)
+
+    @property
+    def search(self) -> SearchSettings:
+        """The search's strength (its ``options``)."""
+        return self.options
 
     def reset_batch(self, ctxs: Sequence[DayContext]) -> None:
         """Keep the geometry and constants of the batch; the slot counter starts at 0."""

@@ -39,19 +39,20 @@ BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
 """Built-in methods (docs/PROTOCOL.md §5). The other paper baselines are added here as they are implemented."""
 
 
-def spec(name: str, methods: Mapping[str, Any]) -> MethodSpec:
-    """The MethodSpec of ``name``: a user method of the ``methods`` section, else a built-in one.
+def lookup(name: str, methods: Mapping[str, Any]) -> tuple[MethodSpec, type[Controller]]:
+    """The MethodSpec and the class of ``name``: a user method of the ``methods`` section, else a built-in one.
 
     Raises:
-        ConfigError: ``name`` is neither registered nor defined under ``methods.user``.
+        ConfigError: ``name`` is neither registered nor defined under ``methods.user``, or its class cannot be
+            imported or is no Controller.
     """
     user = methods.get("user", {}).get(name)
     if user is not None:
         cls = load_class(user["class"], key=f"methods.user.{name}.class")
         return MethodSpec(name=name, target=user["class"], label=getattr(cls, "label", name),
-                          table_class=getattr(cls, "table_class", "user"))
+                          table_class=getattr(cls, "table_class", "user")), cls
     if name in BUILTIN:
-        return BUILTIN[name]
+        return BUILTIN[name], load_class(BUILTIN[name].target, key="methods.run")
     known = ", ".join(sorted(BUILTIN))
     raise ConfigError(f"config.yaml: key 'methods.run' names {name!r}, which is not a registered method "
                       f"(expected one of {known}, or a user method defined under 'methods.user.{name}' "
@@ -93,8 +94,8 @@ def training_sources(learning: Mapping[str, tuple[type[Controller], Any]]) -> di
     """The method whose trained model each learning method evaluates.
 
     A method's training source is the first method (in ``methods.run`` order) of a class that
-    ``shares_training`` with an equal :func:`training_identity`: such methods differ only at decision time, so the ``train`` rule fits the source
-    alone and every method mapped to it loads the source's ``model.pt``.
+    ``shares_training`` with an equal :func:`training_identity`: such methods differ only at decision time, so
+    the ``train`` rule fits the source alone and every method mapped to it loads the source's ``model.pt``.
 
     Args:
         learning: {learning method: (class, typed settings)} in run order.

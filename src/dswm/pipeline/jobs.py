@@ -25,12 +25,12 @@ from dswm.config import build, stable_hash
 from dswm.methods import registry
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
-from prep.atomic import save_npz, write_json
 from dswm.protocol import calibration, evaluation, tables
 from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, MethodSettings,
                            Runtime)
 from dswm.sim.core import FleetCore, core_from_tensor
 from dswm.sim.scenario import Scenario
+from prep.atomic import save_npz, write_json
 from prep.rawio import sha256_file
 
 DAY_METRICS = ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot")
@@ -190,7 +190,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
         evaluation.write_days(result.days, days_out, record)
         save_npz(trajectory_out, **result.trajectories)
         for row in result.days.iter_rows(named=True):
-            run.log_metrics({f"day/{m}": row[m] for m in DAY_METRICS}, step=row["day"])
+            run.log_metrics({f"day/{k}": row[k] for k in DAY_METRICS}, step=row["day"])
         run.log_metrics(evaluation.split_summary(result.days))
         run.set_tags({"data_source": tensor.meta["source"], "eval_days_hash": result.days["eval_days_hash"][0],
                       "obs_spec_hash": result.days["obs_spec_hash"][0]})
@@ -225,8 +225,7 @@ def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], me
     Args:
         job: the plain form of ``dswm.settings.tables_slice``.
     """
-    specs = {m["name"]: registry.MethodSpec(name=m["name"], target="", label=m["label"], table_class=m["table_class"])
-             for m in job["methods"]}
+    specs = {m["name"]: build(registry.MethodSpec, m, f"methods.{m['name']}") for m in job["methods"]}
     return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,
                                run_order=[m["name"] for m in job["methods"]], tables_cfg=job["tables"],
                                profile=job["profile"], out_dir=out_dir)

@@ -2,8 +2,8 @@
 
 The store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every
 training or evaluation job then opens exactly one run with :func:`job_run`. A run is tagged with its job key
-(stage/dataset/method/seed), the profile, the git commit and the hash of its settings, and carries the settings slice it read
-as params. Metrics go out in batches (one SQLite round trip per batch instead of one per value). When a job is
+(stage/dataset/method/seed), the profile, the git commit and the hash of its settings, and carries the settings
+slice it read as params. Metrics go out in batches (one SQLite round trip per batch instead of one per value). When a job is
 rerun, the previous FINISHED runs of the same job key are deleted once the new one finishes, so the UI never
 shows two finished runs of one job; a job that raises (or is terminated) ends its run FAILED. Tables never
 read MLflow: the result files are the source of truth.

@@ -77,9 +77,13 @@ class DSWMController(Controller):
         if name not in METHODS:
             raise ConfigError(f"DSWMController: method must be one of {METHODS}, found {name!r}")
         super().__init__(name=name, seed=seed, device=options.device, options=options)
-        self.settings = options
         self.model: WorldModel | None = None
         self.plan_ms: list[float] = []
+
+    @property
+    def settings(self) -> DSWMSettings:
+        """The method's typed settings (its ``options``)."""
+        return self.options
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> DSWMSettings:

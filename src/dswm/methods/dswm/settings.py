@@ -52,9 +52,9 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str) -> DSWMSettin
     planner = build(PlannerConfig, merge(merge(dswm["planner"], budget.get("planner")), over.get("planner")),
                     "dswm.planner")
     if not 1 <= planner.n_elites <= planner.n_samples:
-        raise ConfigError(f"config.yaml: method {method!r}: key 'dswm.planner.n_elites' must lie in [1, n_samples] (after the "
-                          f"'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' overrides); found "
-                          f"n_elites={planner.n_elites}, n_samples={planner.n_samples}")
+        raise ConfigError(f"config.yaml: method {method!r}: key 'dswm.planner.n_elites' must lie in [1, n_samples] "
+                          f"(after the 'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' "
+                          f"overrides); found n_elites={planner.n_elites}, n_samples={planner.n_samples}")
     return DSWMSettings(
         device=str(dswm["device"]),
         world_model=WorldModelConfig.from_flat(merge(dswm["world_model"], over.get("world_model")),
