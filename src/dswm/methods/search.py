@@ -14,6 +14,7 @@ the world model's anchored imagined next map) and the :class:`SearchSettings` th
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import torch
 
@@ -48,8 +49,11 @@ class SearchSettings:
         object.__setattr__(self, "bw_logits", tuple(sorted(levels, key=abs)))
 
 
+@functools.lru_cache(maxsize=16)
 def lattice_offsets(points: int, d_max: float) -> torch.Tensor:
     """Displacements of a ``points x points`` lattice over [-D_max, D_max]^2 inside the D_max disk.
+
+    Cached: every slot of a search asks for the same lattice, and no caller writes into it.
 
     Args:
         points: odd number of points per axis.
