@@ -47,5 +47,12 @@ def test_eda_statistics_on_a_hand_made_tensor(tmp_path):
     assert s["daily_cycle"]["weekday"][24] == 2.0 and s["daily_cycle"]["weekend"][84] == 3.0
     assert [r["total"] for r in s["daily_totals"]] == [18.0, 18.0]
     assert [r["eval"] for r in s["daily_totals"]] == [None, "ood"]
+    # Hotspot migration: no 2013-11-03 in this tensor, so the first training day's slots 0..50.
+    mig = s["hotspot_migration"]
+    assert mig["window"] == {"day": "2013-11-04", "day_index": 0, "first_slot": 0, "slots": 51,
+                             "basis": "first training day"}
+    assert mig["top_k"] == 1 and mig["lag_slots"] == 18
+    assert mig["top_k_share_overlap"] is None  # no two frames 18 slots apart both hold demand (only 04:00-05:00)
+    assert abs(mig["energy_outside_first_component"]) < 1e-12  # one map throughout
     assert (tmp_path / "eda.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eda.json", "eda.png"]

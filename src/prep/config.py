@@ -80,6 +80,9 @@ class MilanDemo:
     seed: int
     noise_sigma: float
     day_level_sigma: float
+    field_sigma: float  # amplitude (log) of the residual field (prep.demo.milan); 0 switches it off
+    field_tau_slots: float  # its AR(1) e-folding time in 10-min slots
+    field_smooth_cells: float  # std of its spatial Gaussian kernel in squares
     extra_codes_mean: float
     blank_internet_frac: float
 

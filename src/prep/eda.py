@@ -9,6 +9,49 @@ from prep import stats
 from prep.atomic import atomic_path, write_json
 from prep.tensor import DemandTensor
 
+# Hotspot migration (`migration_window`, stats.hotspot_migration): 51 slots (8 h 30 min) from the window's first
+# slot, pairs of share maps 18 slots (3 h) apart. Milan's window is the one of the real full-grid frames
+# shipped with the demo (2013-11-03 00:00-08:20 local; docs/DATA.md gives their figures), so the demo and real
+# data are compared on the same slots; a dataset without such a window, or a Milan tensor without that day,
+# uses the first training day from 00:00.
+MIGRATION_SLOTS = 51
+MIGRATION_LAG = 18
+REFERENCE_WINDOWS = {"milan": ("2013-11-03", 0)}  # dataset -> (day label, first slot)
+
+
+def migration_window(t: DemandTensor) -> dict:
+    """The window of the hotspot-migration figures of a tensor.
+
+    Returns:
+        dict with day (label), day_index, first_slot, slots and basis ("real frames' window" or
+        "first training day").
+    """
+    days = t.meta["days"]
+    ref = REFERENCE_WINDOWS.get(t.meta["dataset"])
+    match = [d for d in days if ref is not None and d["label"] == ref[0]]
+    if match and ref[1] + MIGRATION_SLOTS <= t.demand.shape[1]:
+        day, first, basis = match[0], ref[1], "real frames' window"
+    else:
+        day, first, basis = next((d for d in days if d["split"] == "train"), days[0]), 0, "first training day"
+    return {"day": day["label"], "day_index": int(day["index"]), "first_slot": int(first),
+            "slots": MIGRATION_SLOTS, "basis": basis}
+
+
+def hotspot_migration(t: DemandTensor, top_frac: float) -> dict:
+    """Hotspot-migration figures of a tensor on `migration_window`.
+
+    Returns:
+        dict with window (see `migration_window`), lag_slots, top_k (max(1, round(top_frac x cells)): 20 of
+        Milan's 400), top_k_share_overlap (mean overlap of the top-k cells of share maps lag_slots apart; 1 =
+        hotspots stay put) and energy_outside_first_component (1 - s1^2 / sum s_i^2 of the window's frames x
+        cells matrix; 0 = one map, scaled).
+    """
+    w = migration_window(t)
+    frames = t.demand[w["day_index"], w["first_slot"]: w["first_slot"] + w["slots"]]
+    k = max(1, int(round(top_frac * frames[0].size)))
+    return {"window": w, "lag_slots": MIGRATION_LAG, "top_k": k,
+            **stats.hotspot_migration(frames, k, MIGRATION_LAG)}
+
 
 def eda_stats(t: DemandTensor, *, top_frac: float = 0.05) -> dict:
     """Statistics of a prepared dataset.
@@ -19,7 +62,8 @@ def eda_stats(t: DemandTensor, *, top_frac: float = 0.05) -> dict:
     Returns:
         dict with zero_cell_rate, top5_share, daily_cycle {weekday, weekend} (144 mean crop totals per slot
         each), daily_totals [{index, label, split, eval, total}], hotspot_overlap_04h_14h (overlap of the
-        top cells at 04:00 and 14:00; 1 = hotspots stay put) and the meta figures p99, kappa, week.
+        top cells at 04:00 and 14:00; 1 = hotspots stay put), hotspot_migration (`hotspot_migration`) and the
+        meta figures p99, kappa, week.
     """
     d = t.demand
     weekend = np.array([day["weekend"] for day in t.meta["days"]])
@@ -33,6 +77,7 @@ def eda_stats(t: DemandTensor, *, top_frac: float = 0.05) -> dict:
         "zero_cell_rate": stats.zero_cell_rate(d),
         "top5_share": stats.top_share(d, top_frac),
         "hotspot_overlap_04h_14h": stats.hotspot_motion(d, top_frac),
+        "hotspot_migration": hotspot_migration(t, top_frac),
         "daily_cycle": {"weekday": wk.tolist(), "weekend": we.tolist(),
                         "weekday_peak_slot": int(np.argmax(wk)), "weekend_peak_slot": int(np.argmax(we)) if we.any()
                         else None},

@@ -1,6 +1,8 @@
-"""Statistics of a demand tensor: training percentile, kappa, zero-cell rate, top-cell share, cycles.
+"""Statistics of a demand tensor: training percentile, kappa, zero-cell rate, top-cell share, cycles, hotspot
+migration.
 
-All functions take a dense tensor `values` of shape (days, slots, rows, cols).
+The tensor functions take a dense tensor `values` of shape (days, slots, rows, cols); the hotspot-migration
+functions take consecutive frames (slots, ...) of one window.
 """
 from __future__ import annotations
 
@@ -66,3 +68,55 @@ def hotspot_motion(values: np.ndarray, frac: float, hours: tuple[int, int] = (4,
     top_a = set(np.argsort(-a, kind="stable")[:k].tolist())
     top_b = set(np.argsort(-b, kind="stable")[:k].tolist())
     return len(top_a & top_b) / k
+
+
+def top_share_overlap(frames: np.ndarray, k: int, lag: int) -> float | None:
+    """Mean overlap (0..1) of the top-k cells of demand-share maps `lag` slots apart.
+
+    A frame's share map is each cell's demand / the frame's total; its top-k set holds the k cells of largest
+    share (ties broken by cell index), cells without demand left out. The overlap of a pair of frames t and
+    t + lag is |top_k(t) & top_k(t + lag)| / k; the mean runs over every such pair in `frames`.
+
+    Args:
+        frames: (T, ...) consecutive slots; the trailing axes are the cells.
+        k: cells per top set (>= 1).
+        lag: slots between the two frames of a pair (>= 1).
+    Returns:
+        The mean overlap (1 = the hotspots stay put), or None when no pair has demand in both frames.
+    """
+    x = frames.reshape(len(frames), -1).astype(np.float64)
+    totals = x.sum(axis=1)
+    tops = []
+    for row, total in zip(x, totals):
+        if total > 0:
+            order = np.argsort(-(row / total), kind="stable")[:k]
+            tops.append(set(order[row[order] > 0].tolist()))
+        else:
+            tops.append(None)
+    pairs = [len(tops[t] & tops[t + lag]) / k for t in range(len(x) - lag)
+             if tops[t] is not None and tops[t + lag] is not None]
+    return float(np.mean(pairs)) if pairs else None
+
+
+def energy_outside_first_component(frames: np.ndarray) -> float | None:
+    """Share of the demand energy outside the first singular component of the (frames x cells) matrix.
+
+    1 - s_1^2 / sum_i s_i^2 of the raw (uncentred) demand: 0 when every frame is a multiple of one map, larger
+    the more the map changes shape across the frames.
+
+    Args:
+        frames: (T, ...) slots; the trailing axes are the cells.
+    Returns:
+        The share in [0, 1], or None when the frames hold no demand.
+    """
+    x = frames.reshape(len(frames), -1).astype(np.float64)
+    s2 = np.linalg.svd(x, compute_uv=False) ** 2
+    total = float(s2.sum())
+    return float(1.0 - s2[0] / total) if total > 0 else None
+
+
+def hotspot_migration(frames: np.ndarray, k: int, lag: int) -> dict[str, float | None]:
+    """Both hotspot-migration figures of consecutive frames (T, ...): `top_k_share_overlap`
+    (`top_share_overlap`) and `energy_outside_first_component`."""
+    return {"top_k_share_overlap": top_share_overlap(frames, k, lag),
+            "energy_outside_first_component": energy_outside_first_component(frames)}
