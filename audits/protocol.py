@@ -3,12 +3,16 @@
 * `check_hashes`: every result file of every method carries one observation-spec hash, one eval-days hash
   and one scenario hash, each equal to the value recomputed from the settings and meta.json.
 * `check_result_days`: every result file holds exactly the configured ID and OOD days of its dataset.
+* `check_bcd_search_identical`: every result file records its method's resolved settings, and every method that
+  runs a block-coordinate-descent search ran the one search the settings give it, identical across the run.
 
 Part 2, that learners learn from training days only and evaluate the model they trained, is `audits.training`.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import polars as pl
 
@@ -33,6 +37,29 @@ def _read_result(ctx: AuditContext, path: Path) -> pl.DataFrame:
 
 def result_path(ctx: AuditContext, ds: str, method: str, seed: int) -> Path:
     return ctx.run_dir(ds, method, seed) / "days.parquet"
+
+
+def result_record(ctx: AuditContext, chk: Check, path: Path, *, read, key: str, holds: str, job: str) -> dict | None:
+    """One metadata record of a result file, or None after failing ``chk`` with the reason (missing file,
+    unreadable file, no record).
+
+    Args:
+        read: the reader of the record (``read_model_record`` or ``read_method_record``); key: its metadata key;
+        holds: what the record should hold (for the message); job: "dataset/method/seed<seed>" to re-run.
+    """
+    where = ctx.rel(path)
+    try:
+        rec = read(ctx.ledger.track(path))
+    except FileNotFoundError:
+        chk.fail(f"{where}: result file missing (run the evaluate rule)")
+        return None
+    except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
+        chk.fail(f"{where}: unreadable ({exc})")
+        return None
+    if rec is None:
+        chk.fail(f"{where}: no {key} record in its metadata; expected {holds} — the result predates this record; "
+                 f"re-run the evaluate job of {job}")
+    return rec
 
 
 def _results(ctx: AuditContext, chk: Check, ds: str):
@@ -113,4 +140,106 @@ def check_result_days(ctx: AuditContext) -> Check:
                 if wrong:
                     chk.fail(f"{ctx.rel(path)}: day index/label pairs {wrong[:3]} disagree with meta.json")
         chk.evidence[ds] = {k: [labels[d] for d in v] for k, v in want.items()}
+    return chk
+
+
+def _configured_searches(ctx: AuditContext, chk: Check) -> dict[str, Any]:
+    """{method: the plain BCD search its controller runs under the settings, or None}, derived from the settings
+    (the controller built as the evaluate job builds it, then ``search_settings()``); a method whose search cannot
+    be derived fails ``chk`` and is left out."""
+    from dswm.config import to_plain
+    from dswm.methods import registry
+
+    out: dict[str, Any] = {}
+    for name in ctx.methods:
+        m = ctx.settings.methods[name]
+        try:
+            ctrl = registry.build(name, target=m.target, options=m.options, seed=0,
+                                  device=ctx.settings.evaluation.device)
+            search = ctrl.search_settings()
+        except Exception as exc:  # noqa: BLE001 - reported as a finding naming the method
+            chk.fail(f"methods.{name}: the search settings of {m.target} cannot be derived from the settings "
+                     f"({type(exc).__name__}: {exc})")
+            continue
+        out[name] = None if search is None else to_plain(search)
+    return out
+
+
+def _search_diff(a: Any, b: Any) -> str:
+    """The keys in which two plain search settings differ, as "key: a vs b" (or the two values whole)."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return f"{json.dumps(a, sort_keys=True)} vs {json.dumps(b, sort_keys=True)}"
+    absent = "(absent)"
+    keys = sorted(k for k in set(a) | set(b) if a.get(k, absent) != b.get(k, absent))
+    return ", ".join(f"{k}: {json.dumps(a.get(k, absent))} vs {json.dumps(b.get(k, absent))}" for k in keys)
+
+
+def check_bcd_search_identical(ctx: AuditContext) -> Check:
+    """Every BCD search of the run (Greedy, the oracle, DSWM's proposal, ...) used identical search settings."""
+    from dswm.protocol.evaluation import METHOD_RECORD_FIELDS, METHOD_RECORD_KEY, read_method_record
+
+    chk = Check(id="protocol.bcd_search_identical", family="protocol",
+                claim="Every result file of every method records its method's resolved settings "
+                      f"({METHOD_RECORD_KEY}) for the method it holds; every method that runs a block-coordinate-"
+                      "descent search recorded the search the settings give it, and all those searches are "
+                      "identical (sweeps, lattice, refine, bandwidth logits), so no method's margin comes from a "
+                      "stronger search.")
+    want = _configured_searches(ctx, chk)
+    runs: list[tuple[str, str, dict]] = []  # (file, method, plain search) of every result file that ran a BCD
+    quiet: list[str] = []  # methods whose result files record no search
+    for ds in ctx.datasets:
+        for method in ctx.methods:
+            for seed in ctx.seeds(ds):
+                path = result_path(ctx, ds, method, seed)
+                where = ctx.rel(path)
+                rec = result_record(ctx, chk, path, read=read_method_record, key=METHOD_RECORD_KEY,
+                                    holds=f"the resolved settings and BCD search of {method}",
+                                    job=f"{ds}/{method}/seed{seed}")
+                if rec is None:
+                    continue
+                missing = [k for k in METHOD_RECORD_FIELDS if k not in rec]
+                if missing:
+                    chk.fail(f"{where}: {METHOD_RECORD_KEY} record lacks {missing}; expected the fields "
+                             f"{list(METHOD_RECORD_FIELDS)}")
+                    continue
+                if rec["method"] != method:
+                    chk.fail(f"{where}: {METHOD_RECORD_KEY} records method {rec['method']!r}, but the file is the "
+                             f"result of {method!r} — the settings recorded are another method's")
+                search = rec["search"]
+                if search is not None and not isinstance(search, dict):
+                    chk.fail(f"{where}: {METHOD_RECORD_KEY} search = {search!r}; expected the plain search "
+                             f"settings (a JSON object) or null")
+                    continue
+                if method in want and search != want[method]:
+                    chk.fail(f"{where}: {method} recorded search {json.dumps(search, sort_keys=True)}, the settings "
+                             f"give {method} {json.dumps(want[method], sort_keys=True)} "
+                             f"({_search_diff(search, want[method])}) — {method} was evaluated with other search "
+                             f"settings than configured")
+                if search is None:
+                    quiet.append(method)
+                else:
+                    runs.append((where, method, search))
+    quiet = [m for m in ctx.methods if m in quiet]
+    if not runs:
+        chk.evidence.update(search=None, methods=[], without_search=quiet,
+                            note="no method of the run runs a BCD search (every result file records search null): "
+                                 "nothing to compare")
+        return chk
+    variants: dict[str, list[tuple[str, str, dict]]] = {}
+    for run in runs:
+        variants.setdefault(json.dumps(run[2], sort_keys=True), []).append(run)
+    # The reference is the search most result files ran (the first seen on a tie); every other one is named.
+    ref_key = max(variants, key=lambda k: len(variants[k]))
+    ref_where, ref_method, ref = variants[ref_key][0]
+    for key, members in variants.items():
+        if key == ref_key:
+            continue
+        for where, method, search in members:
+            chk.fail(f"{where}: {method} ran the BCD search {key}, but {ref_where} ({ref_method}) ran {ref_key} — "
+                     f"they differ in {_search_diff(search, ref)}; every BCD of a run must use the one search")
+    ran = [m for m in ctx.methods if any(r[1] == m for r in runs)]
+    chk.evidence.update(search=ref, methods=ran, files=len(runs), without_search=quiet)
+    if len(variants) > 1:
+        chk.evidence["variants"] = [{"search": json.loads(k), "files": [w for w, _, _ in v]}
+                                    for k, v in variants.items()]
     return chk

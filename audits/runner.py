@@ -35,6 +35,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     derived.check_calibration,
     protocol.check_hashes,
     protocol.check_result_days,
+    protocol.check_bcd_search_identical,
     training.check_training_days,
     training.check_checkpoints,
     training.check_evaluated_models,

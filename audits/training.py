@@ -15,10 +15,8 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
-import polars as pl
-
 from audits.context import AuditContext, AuditInputError
-from audits.protocol import result_path
+from audits.protocol import result_path, result_record
 from audits.report import Check
 
 CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt", ".safetensors")
@@ -249,18 +247,10 @@ def check_evaluated_models(ctx: AuditContext) -> Check:
         where = ctx.rel(days)
         want_model = ctx.run_dir(ds, source, seed) / MODEL_FILE
         want_manifest = ctx.run_dir(ds, source, seed) / "train_manifest.json"
-        try:
-            rec = read_model_record(ctx.ledger.track(days))
-        except FileNotFoundError:
-            chk.fail(f"{where}: result file missing (run the evaluate rule)")
-            continue
-        except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
-            chk.fail(f"{where}: unreadable ({exc})")
-            continue
+        rec = result_record(ctx, chk, days, read=read_model_record, key=MODEL_RECORD_KEY,
+                            holds="the model file the evaluation loaded, its SHA-256 and its training source",
+                            job=f"{ds}/{method}/seed{seed}")
         if rec is None:
-            chk.fail(f"{where}: no {MODEL_RECORD_KEY} record in its metadata; expected the model file the "
-                     f"evaluation loaded, its SHA-256 and its training source — the result predates model "
-                     f"recording; re-run the evaluate job of {ds}/{method}/seed{seed}")
             continue
         if rec.get("train_source") != source:
             chk.fail(f"{where}: train_source = {rec.get('train_source')!r}, expected {source!r} (the training "

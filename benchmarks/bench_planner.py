@@ -3,9 +3,9 @@
 Run: python benchmarks/bench_planner.py [--threads 2] [--device cpu] [--slots 8]
 Writes benchmarks/results/planner_<device>_t<threads>.json and .png.
 
-Per-slot planning is timed at the paper's production settings (N_cem=512, 6 iterations, H=15, E=5, K=16,
-G=400 on a 20x20 grid), with the configured proposal and continuation and without them (plain CEM), and at
-the demo and smoke planner sizes of config.yaml; the paper profile runs the imagined steps compiled
+Per-slot planning of DSWM+'s planner (``dswm_plus``) is timed at the paper's production settings (N_cem=512,
+6 iterations, H=15, E=5, K=16, G=400 on a 20x20 grid), with its proposal and continuation and without them
+(plain CEM), and at the demo and smoke planner sizes of config.yaml, where Algorithm 1 (``dswm``) is timed too; the paper profile runs the imagined steps compiled
 (``planner.compile``), and the same production planner is also timed eager. One imagined step is broken
 down into its eager parts (RSSM prior, demand ensemble + anchoring, fleet kinematics, service physics), and
 the model's compiled share of it times the 90 imagined steps of a production slot is recorded as a floor under
@@ -41,12 +41,14 @@ from dswm.methods.dswm.planner import anchor
 from dswm.methods.dswm.training import collect, make_optimizer
 
 
-def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, device: str) -> DSWMController:
+def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, device: str,
+                method: str = "dswm_plus") -> DSWMController:
     c = copy.deepcopy(cfg["dswm"])
     c["device"] = device
-    c["budgets"][profile]["planner"] = {**(c["budgets"][profile].get("planner") or {}), **planner_over}
-    ctl = DSWMController(name="dswm", seed=0, device=device,
-                         options=dswm_settings(c, method="dswm", profile=profile))
+    c["methods"][method] = {**(c["methods"].get(method) or {}),
+                            "planner": {**((c["methods"].get(method) or {}).get("planner") or {}), **planner_over}}
+    ctl = DSWMController(name=method, seed=0, device=device,
+                         options=dswm_settings(c, method=method, profile=profile, search=cfg["search"]))
     ctl.model = ctl._build_model(core.grid, core.scenario)
     ctl.model.set_normalizer(torch.as_tensor(core.demand[:1].cpu().numpy()))
     ctl.model.eval()
@@ -120,7 +122,7 @@ def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> di
 
 
 def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
-    s = dswm_settings(cfg["dswm"], method="dswm", profile="demo")
+    s = dswm_settings(cfg["dswm"], method="dswm", profile="demo", search=cfg["search"])
     rep = collect(core, n_transitions=2 * 143, cfg=s.training, seed=0, day_ids=np.arange(core.n_days))
     ctl = DSWMController(name="dswm", seed=0, device=device, options=s)
     model = ctl._build_model(core.grid, core.scenario)
@@ -187,16 +189,18 @@ def main() -> None:
     core = FleetCore(demand=demand, grid=grid, scenario=scenario, dataset="bench", day_labels=["d0", "d1"],
                      init_pos=initial_positions(demand.mean((0, 1)), grid, scenario.n_uavs, 0), device=args.device)
     production = {"n_samples": 512, "n_elites": 64, "iterations": 6, "horizon": 15}
-    settings_list = {
+    settings_list = {  # DSWM+'s planner (dswm_plus) unless named; Algorithm 1 is dswm's
         "production (configured proposal)": ("paper", production),
         "production, eager (compile off)": ("paper", {**production, "compile": False}),
         "production, plain CEM": ("paper", {**production, "proposal": "none", "continuation": "hold"}),
         "demo sizes": ("demo", {}),
+        "demo sizes, Algorithm 1 (dswm)": ("demo", {"method": "dswm"}),
         "smoke sizes": ("smoke", {}),
     }
     per_slot = {}
     for name, (profile, over) in settings_list.items():
-        ctl = _controller(cfg, profile, over, core, args.device)
+        over = dict(over)
+        ctl = _controller(cfg, profile, over, core, args.device, method=over.pop("method", "dswm_plus"))
         per_slot[name] = {**_time_slots(ctl, core, args.slots),
                           "planner": {k: getattr(ctl.settings.planner, k) for k in
                                       ("n_samples", "n_elites", "iterations", "horizon", "proposal", "continuation",

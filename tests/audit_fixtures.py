@@ -3,7 +3,8 @@
 `build_clean_tree(root)` writes, under `root`, what the pipeline would have produced on two tiny datasets:
 raw files in the published Milan and YJMob formats (results/raw/...), the prepared tensors made by the real
 `prep` functions (results/data/...), per-day result files of static, greedy and two learning methods that share
-one training (dswm trains; dswm_wo_unc evaluates its model), the training manifest and checkpoint, trajectories
+one training (dswm trains; dswm_wo_unc evaluates its model), each with the model record and the method record
+(resolved settings and BCD search) an evaluation stores, the training manifest and checkpoint, trajectories
 and the calibration record. Test days carry more demand than
 training days, so every training statistic differs from its all-days and test-segment values.
 
@@ -158,7 +159,8 @@ def evaluate_static(settings: Settings, root: Path, ds: str, seed: int) -> Path:
                    batch_days=settings.evaluation.batch_days, progress_interval_s=60.0)
     run = root / "results" / ds / "static" / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
-    write_days(res.days, run / "days.parquet", model_record(settings, root, ds, "static", seed))
+    write_days(res.days, run / "days.parquet", model_record(settings, root, ds, "static", seed),
+               method_record(settings, "static", seed))
     np.savez(run / "trajectory.npz", **res.trajectories)
     for f in ("days.parquet", "trajectory.npz"):
         os.utime(run / f, (T0 + 20, T0 + 20))
@@ -180,12 +182,23 @@ def model_record(settings: Settings, root: Path, ds: str, method: str, seed: int
             "train_manifest": (run / "train_manifest.json").as_posix()}
 
 
+def method_record(settings: Settings, method: str, seed: int = 0) -> dict:
+    """The method record a clean evaluation of `method` stores in days.parquet: built by the evaluate job's own
+    `dswm.pipeline.jobs.method_record` from the method's settings and the controller they build."""
+    from dswm.methods import registry
+    from dswm.pipeline.jobs import method_record as job_method_record
+
+    m = settings.methods[method]
+    ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=settings.evaluation.device)
+    return job_method_record(m, ctrl)
+
+
 def write_results(settings: Settings, root: Path, ds: str, method: str, seed: int, *, obs_hash: str | None = None,
                   days_override: dict[str, list[int]] | None = None, init_pos: np.ndarray | None = None,
-                  record: dict | None = None) -> Path:
-    """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes and model
-    record a clean evaluation records (or the planted `obs_hash`, evaluated `days_override`, initial positions
-    `init_pos`, model `record`)."""
+                  record: dict | None = None, settings_record: dict | None = None) -> Path:
+    """Writes days.parquet and trajectory.npz of one job in the evaluation's format, with the hashes, model
+    record and method record a clean evaluation records (or the planted `obs_hash`, evaluated `days_override`,
+    initial positions `init_pos`, model `record`, method `settings_record`)."""
     from dswm.protocol.evaluation import DAY_COLUMNS, write_days
     from dswm.sim.core import initial_deployment
 
@@ -201,7 +214,8 @@ def write_results(settings: Settings, root: Path, ds: str, method: str, seed: in
     run = root / "results" / ds / method / f"seed{seed}"
     run.mkdir(parents=True, exist_ok=True)
     write_days(pl.DataFrame(rows).select(DAY_COLUMNS), run / "days.parquet",
-               record if record is not None else model_record(settings, root, ds, method, seed))
+               record if record is not None else model_record(settings, root, ds, method, seed),
+               settings_record if settings_record is not None else method_record(settings, method, seed))
     init = initial_deployment(t, grid, scenario) if init_pos is None else init_pos
     traj = {}
     for split in ("id", "ood"):

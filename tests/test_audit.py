@@ -18,7 +18,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from audit_fixtures import T0, build_clean_tree, model_record, prepare, write_results, write_training
+from audit_fixtures import (T0, build_clean_tree, method_record, model_record, prepare, write_results,
+                            write_training)
 from audits import crop, derived, protocol, splits, statistics, training
 from audits.__main__ import main
 from audits.context import AuditContext
@@ -240,6 +241,93 @@ def test_learning_result_without_a_model_record(tree):
     assert len(chk.failures) == 1
     assert chk.failures[0].startswith("results/yjmob/dswm/seed0/days.parquet: no dswm.evaluated_model record")
     assert "re-run the evaluate job of yjmob/dswm/seed0" in chk.failures[0]
+
+
+def rewrite_records(path: Path, *, method_rec: dict | None) -> None:
+    """Rewrites a result file with the same table and model record and ``method_rec`` as its method record (none
+    when None, as an evaluate job wrote before it recorded the method), keeping the fixture's file time."""
+    from dswm.protocol.evaluation import MODEL_RECORD_KEY, read_model_record, write_days
+
+    days, model_rec = pl.read_parquet(path), read_model_record(path)
+    if method_rec is None:
+        days.write_parquet(path, metadata={MODEL_RECORD_KEY: json.dumps(model_rec, sort_keys=True)})
+    else:
+        write_days(days, path, model_rec, method_rec)
+    os.utime(path, (T0 + 20, T0 + 20))
+
+
+def searching_results(root: Path, settings: Settings) -> list[tuple[str, str]]:
+    """(result file, method) of every result file of the tree whose method record names a BCD search, run order."""
+    from dswm.protocol.evaluation import read_method_record
+
+    return [(f"results/{ds}/{m}/seed0/days.parquet", m) for ds in settings.run.datasets for m in settings.methods
+            if read_method_record(root / f"results/{ds}/{m}/seed0/days.parquet")["search"] is not None]
+
+
+def test_every_bcd_search_of_the_clean_run_is_identical(clean):
+    root, settings = clean
+    chk = run(root, settings, protocol.check_bcd_search_identical)
+    assert chk.passed, chk.failures
+    assert chk.id == "protocol.bcd_search_identical"
+    greedy = method_record(settings, "greedy")
+    assert greedy["search"] is not None  # greedy is the BCD on the current map: it runs one
+    assert chk.evidence["search"] == greedy["search"]
+    ran = [m for _, m in searching_results(root, settings)]
+    assert "greedy" in chk.evidence["methods"] and chk.evidence["methods"] == list(dict.fromkeys(ran))
+    assert chk.evidence["files"] == len(ran) and "static" in chk.evidence["without_search"]
+
+
+def test_one_result_file_that_ran_another_search(tree):
+    root, settings = tree
+    from dswm.protocol.evaluation import read_method_record
+
+    where, method = searching_results(root, settings)[-1]  # the last one: a clean file is the reference
+    path = root / where
+    rec = read_method_record(path)
+    sweeps = rec["search"]["sweeps"]
+    rec["search"]["sweeps"] = sweeps + 1  # one more pass over the UAVs than every other BCD of the run
+    rewrite_records(path, method_rec=rec)
+    chk = run(root, settings, protocol.check_bcd_search_identical)
+    assert not chk.passed
+    assert all(m.startswith(f"{where}: {method} ") for m in chk.failures), chk.failures
+    differs = [m for m in chk.failures if "ran the BCD search" in m]
+    assert len(differs) == 1, chk.failures
+    ref_where, ref_method = searching_results(root, settings)[0]
+    assert f"but {ref_where} ({ref_method}) ran" in differs[0]  # both files and both methods named
+    assert f"they differ in sweeps: {sweeps + 1} vs {sweeps};" in differs[0]  # and the key that differs
+    assert any(f"the settings give {method}" in m and f"sweeps: {sweeps + 1} vs {sweeps}" in m
+               for m in chk.failures), chk.failures
+    assert [v["files"] for v in chk.evidence["variants"] if v["search"]["sweeps"] == sweeps + 1] == [[where]]
+
+
+def test_result_file_without_a_method_record(tree):
+    root, settings = tree
+    path = root / "results/milan/static/seed0/days.parquet"
+    rewrite_records(path, method_rec=None)
+    chk = run(root, settings, protocol.check_bcd_search_identical)
+    assert len(chk.failures) == 1
+    assert chk.failures[0].startswith("results/milan/static/seed0/days.parquet: no dswm.method_settings record")
+    assert "re-run the evaluate job of milan/static/seed0" in chk.failures[0]
+    assert run(root, settings, training.check_evaluated_models).passed  # its model record is still there
+
+
+def test_method_record_of_another_method(tree):
+    root, settings = tree
+    rewrite_records(root / "results/yjmob/static/seed0/days.parquet", method_rec=method_record(settings, "greedy"))
+    chk = run(root, settings, protocol.check_bcd_search_identical)
+    assert ("results/yjmob/static/seed0/days.parquet: dswm.method_settings records method 'greedy', but the file is "
+            "the result of 'static' — the settings recorded are another method's") in chk.failures, chk.failures
+    assert all(m.startswith("results/yjmob/static/seed0/days.parquet: ") for m in chk.failures)
+
+
+def test_a_run_without_a_bcd_search_passes_and_says_so(clean):
+    root, settings = clean
+    ctx = AuditContext(root=root, settings=settings)
+    ctx.methods = ["static"]  # a run of Static alone: no method searches
+    chk = protocol.check_bcd_search_identical(ctx)
+    assert chk.passed, chk.failures
+    assert chk.evidence["search"] is None and chk.evidence["methods"] == []
+    assert "no method of the run runs a BCD search" in chk.evidence["note"]
 
 
 def test_sharing_method_evaluated_before_its_source_training_ended(tree):

@@ -61,9 +61,10 @@ def test_the_repository_config_is_valid_and_every_level_refuses_unknown_keys(con
     (lambda c: c["dswm"]["budgets"]["smoke"].update(stepz=1), ["unknown key 'dswm.budgets.smoke.stepz'"]),
     (lambda c: c["scenario"].update(slots_per_day=96), ["'scenario.slots_per_day'", "144", "found 96"]),
     (lambda c: c["scenario"].update(reserve_frac=0), ["'scenario.reserve_frac'", "strictly between 0 and 1"]),
-    (lambda c: c["dswm"]["planner"].update(proposal_bw_logits=[-0.5, 0.5]),
-     ["'dswm.planner.proposal_bw_logits'", "includes 0", "[-0.5, 0.5]"]),
-    (lambda c: c["methods"]["oracle"].update(bw_logits=[1.0]), ["'methods.oracle.bw_logits'", "includes 0"]),
+    (lambda c: c["search"].update(bw_logits=[-0.5, 0.5]), ["'search.bw_logits'", "includes 0", "[-0.5, 0.5]"]),
+    (lambda c: c["search"].update(lattice=6), ["'search.lattice'", "odd integer", "found 6"]),
+    (lambda c: c["dswm"]["planner"].update(sigma0_later=-0.1), ["'dswm.planner.sigma0_later'", "or null"]),
+    (lambda c: c["dswm"]["planner"].pop("carry_best"), ["missing key 'dswm.planner.carry_best'"]),
 ])
 def test_bad_keys_and_values_are_named_with_the_expected_form(config, mutate, words):
     bad = copy.deepcopy(config)
@@ -89,12 +90,15 @@ def test_resolution_keeps_only_the_selected_profile_and_its_hash_differs(config)
 
 def test_settings_are_typed_and_come_back_from_their_plain_form(config):
     s = runconfig.resolve(config)
-    assert s.methods["greedy"].options.sweeps == config["methods"]["greedy"]["sweeps"]
+    assert s.methods["greedy"].options.sweeps == config["search"]["sweeps"]
+    assert s.methods["dswm_plus"].options.planner.search == s.methods["oracle"].options  # the one search
     assert s.methods["dswm"].options.planner.n_samples == config["dswm"]["budgets"]["demo"]["planner"]["n_samples"]
     assert s.methods["dswm_wo_unc"].options.planner.lambda_u == 0.0
     assert s.display.progress_mininterval_s == config["evaluation"]["progress_mininterval_s"]
     back = runconfig.Settings.from_plain(runconfig.audit_slice(s))
-    assert back == dataclasses.replace(s, display=None)
+    assert back == dataclasses.replace(s, display=None, selection=None)
+    sel = runconfig.select_slice(s)["selection"]
+    assert runconfig.build(runconfig.SelectionSettings, sel, "selection") == s.selection
 
 
 def test_a_slice_is_the_same_text_whatever_the_key_order_of_the_yaml(config):

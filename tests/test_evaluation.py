@@ -1,4 +1,6 @@
 """Per-day evaluation: the day score recomputed from the physics, energy from the hover power, bookkeeping."""
+import dataclasses
+
 import numpy as np
 import polars as pl
 import pytest
@@ -122,6 +124,11 @@ def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path
     assert (tmp_path / "m.json").read_text() == '{\n  "a": [\n    2\n  ],\n  "b": 1\n}\n'
 
 
+def static_method_record(name: str) -> dict:
+    """A method record of a method that runs no search (what the evaluate job records for Static)."""
+    return {"method": name, "class": "dswm.methods.classical:StaticController", "options": None, "search": None}
+
+
 def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkeypatch):
     import json
 
@@ -140,12 +147,12 @@ def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkey
                    "model_sha256": sha256_file(run / "model.pt"),
                    "train_manifest": "results/milan/dswm/seed0/train_manifest.json"}
     days = pl.DataFrame({"day": [1, 2], "sr_mean": [0.5, 0.6]})
-    write_days(days, tmp_path / "days.parquet", rec)
+    write_days(days, tmp_path / "days.parquet", rec, static_method_record("dswm_wo_unc"))
     assert read_model_record(tmp_path / "days.parquet") == rec
     assert pl.read_parquet(tmp_path / "days.parquet").equals(days)  # the table itself is unchanged
     assert sorted(p.name for p in tmp_path.iterdir()) == ["days.parquet", "results"]  # no temp file left
     static = model_record(method="static")
-    write_days(days, tmp_path / "static.parquet", static)
+    write_days(days, tmp_path / "static.parquet", static, static_method_record("static"))
     assert read_model_record(tmp_path / "static.parquet")["model"] is None
     days.write_parquet(tmp_path / "bare.parquet")
     assert read_model_record(tmp_path / "bare.parquet") is None
@@ -164,3 +171,49 @@ def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path):
     msg = str(err.value)
     assert f"{tmp_path / 'model.pt'}: SHA-256 is " in msg and f"expected {'ab' * 32}" in msg
     assert "train_manifest.json" in msg and "re-run the train job of dswm" in msg
+
+
+def test_days_file_carries_the_resolved_settings_and_search_of_its_method(tmp_path):
+    from dswm.config import to_plain
+    from dswm.methods.base import Controller
+    from dswm.pipeline.jobs import method_record, model_record
+    from dswm.protocol.evaluation import (METHOD_RECORD_FIELDS, read_method_record, read_model_record,
+                                          write_days)
+    from dswm.settings import MethodSettings
+
+    search = SearchSettings(sweeps=3, lattice=7, refine=2, bw_logits=(1.0, -1.0, 0.0))
+
+    class Searching(Controller):
+        def search_settings(self):
+            return search
+
+    m = MethodSettings(name="greedy", target="dswm.methods.classical:GreedyController", label="Greedy",
+                       table_class="heuristic", learns=False, training_source=None, options=search)
+    rec = method_record(m, Searching(name="greedy"))
+    assert rec == {"method": "greedy", "class": "dswm.methods.classical:GreedyController",
+                   "options": to_plain(search), "search": {"sweeps": 3, "lattice": 7, "refine": 2,
+                                                           "bw_logits": [0.0, 1.0, -1.0]}}
+    days = pl.DataFrame({"day": [1, 2], "sr_mean": [0.5, 0.6]})
+    path = tmp_path / "days.parquet"
+    write_days(days, path, model_record(method="greedy"), rec)
+    assert read_method_record(path) == rec  # round trip: plain JSON in, the same plain JSON out
+    assert read_model_record(path)["method"] == "greedy"  # both records, side by side
+    assert pl.read_parquet(path).equals(days)
+    static = method_record(dataclasses.replace(m, name="static", target="dswm.methods.classical:StaticController",
+                                                options=None), Controller(name="static"))
+    assert static == static_method_record("static")  # a method that runs no search records search null
+    write_days(days, tmp_path / "static.parquet", model_record(method="static"), static)
+    assert read_method_record(tmp_path / "static.parquet")["search"] is None
+    days.write_parquet(tmp_path / "bare.parquet")
+    assert read_method_record(tmp_path / "bare.parquet") is None
+    for field in METHOD_RECORD_FIELDS:
+        bad = {k: v for k, v in rec.items() if k != field}
+        with pytest.raises(ValueError, match=rf"method record lacks \['{field}'\]"):
+            write_days(days, tmp_path / "bad.parquet", model_record(method="greedy"), bad)
+    with pytest.raises(ValueError, match="class = 'GreedyController'"):
+        write_days(days, tmp_path / "bad.parquet", model_record(method="greedy"), {**rec, "class": "GreedyController"})
+    with pytest.raises(ValueError, match="search = 3"):
+        write_days(days, tmp_path / "bad.parquet", model_record(method="greedy"), {**rec, "search": 3})
+    with pytest.raises(ValueError, match="model record lacks"):
+        write_days(days, tmp_path / "bad.parquet", {"method": "greedy"}, rec)
+    assert not (tmp_path / "bad.parquet").exists()  # a refused record writes nothing

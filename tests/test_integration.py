@@ -1,8 +1,8 @@
 """The whole DAG on the `smoke` profile in a temporary copy of the repository, then its outputs checked.
 
 One run (module fixture): `snakemake tables calibrate --config profile=smoke` builds the demo raw data of the
-three datasets, prepares them, creates the MLflow store, trains dswm and dswm_wo_dec (dswm_wo_unc shares
-dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits the tree,
+three datasets, prepares them, creates the MLflow store, trains dswm and dswm_wo_dec (dswm_wo_unc and dswm_plus
+share dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits the tree,
 calibrates u on the Milan training days, and writes both tables.
 """
 import csv
@@ -89,6 +89,36 @@ def test_repositioning_pays_on_every_dataset_and_the_oracle_bounds_greedy(run):
         static, greedy, oracle = (seed_score(run, ds, m, "id") for m in BASELINES)
         assert greedy > static, ds
         assert oracle > greedy, ds
+        assert seed_score(run, ds, "perfect", "id") > greedy, ds   # planning on the true future maps pays too
+
+
+def test_every_bcd_of_the_run_ran_the_one_search_and_the_tables_give_the_room(run):
+    from dswm.protocol.evaluation import read_method_record
+
+    cfg = load_yaml(run / "config.yaml")
+    searching = {"greedy", "oracle", "dswm_plus", "dswm_plus_persist", "perfect"}
+    for ds in DATASETS:
+        for m in METHODS:
+            rec = read_method_record(run / "results" / ds / m / "seed0" / "days.parquet")
+            assert rec["method"] == m
+            if m in searching:
+                assert {k: rec["search"][k] for k in ("sweeps", "lattice", "refine")} == \
+                    {k: cfg["search"][k] for k in ("sweeps", "lattice", "refine")}, (ds, m)
+                assert sorted(rec["search"]["bw_logits"]) == sorted(cfg["search"]["bw_logits"])
+            else:
+                assert rec["search"] is None, (ds, m)
+    report = json.loads((run / "results" / "audit" / "report.json").read_text())
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.bcd_search_identical")
+    assert chk["passed"] and sorted(chk["evidence"]["methods"]) == sorted(searching)
+    room = read_csv(run / "results" / "tables" / "room.csv")
+    assert sorted((r["dataset"], r["split"], r["method"]) for r in room) == \
+        sorted((d, s, m) for d in DATASETS for s in ("weekday", "holiday") for m in cfg["tables"]["room"]["fill"])
+    for r in room:
+        split = "id" if r["split"] == "weekday" else "ood"
+        assert float(r["room"]) == pytest.approx(seed_score(run, r["dataset"], "perfect", split)
+                                                 - seed_score(run, r["dataset"], "greedy", split), abs=1e-9)
+    assert "Room a forecast could fill, Greedy (BCD) -> Perfect forecast (clairvoyant)" in \
+        (run / "results" / "tables" / "milan_main.md").read_text()
 
 
 def test_result_files_follow_the_contract(run):
@@ -167,7 +197,7 @@ def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifi
     for r in train_runs:  # the train run names every method whose evaluation loads its model
         src = r.data.tags["method"]
         assert r.data.tags["evaluated_as"] == ",".join(m for m in sources if sources[m] == src)
-    assert {r.data.tags["evaluated_as"] for r in train_runs} == {"dswm,dswm_wo_unc", "dswm_wo_dec"}
+    assert {r.data.tags["evaluated_as"] for r in train_runs} == {"dswm,dswm_wo_unc,dswm_plus", "dswm_wo_dec"}
     report = json.loads((run / "results" / "audit" / "report.json").read_text())
     chk = next(c for c in report["checks"] if c["id"] == "protocol.evaluated_models")
     assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in sources)

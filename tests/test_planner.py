@@ -1,9 +1,13 @@
 """Observation-anchored CEM planner: CEM core, anchoring arithmetic, scorer plumbing, and the agreement of
 imagination with the environment when the true demand is supplied."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
+
+from dswm.methods.search import SearchSettings
 
 from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs
 from dswm.sim.env import synthetic_demand
@@ -135,9 +139,9 @@ def test_imagination_agrees_with_environment_including_battery_returns(scenario,
 
 def test_planner_warm_start_and_reproducibility(scenario):
     cfg = PlannerConfig(horizon=4, n_samples=32, n_elites=4, iterations=2, sigma0=0.3, sigma0_later=0.3,
-                        min_std=0.05, gamma=0.9, rho=0.95, lambda_u=1.0, warm_start=True, continuation="hold",
-                        proposal="none", proposal_sweeps=1, proposal_lattice=3, proposal_refine=0,
-                        proposal_bw_logits=(0.0,), compile=False)
+                        min_std=0.05, gamma=0.9, rho=0.95, lambda_u=1.0, warm_start=True, carry_best=True,
+                        continuation="hold", proposal="none",
+                        search=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=(0.0,)), compile=False)
     target = torch.full((4, scenario.n_uavs, 3), 0.4)
 
     def score(a):
@@ -184,3 +188,35 @@ def test_compiled_imagination_matches_the_eager_one(scenario, use_model):
     assert float(want.abs().min()) > 0.1                  # non-trivial scores
     torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
     torch.testing.assert_close(compiled.last_actions, eager.last_actions, rtol=0, atol=1e-5)
+
+
+def test_algorithm_1_forgets_each_slot_and_plain_cem_does_not_re_enter_its_best(scenario):
+    """Without warm start the next slot plans exactly as a fresh planner; carry_best re-enters the best sequence
+    into the next iteration's population, plain CEM (Algorithm 1) does not."""
+    base = dict(horizon=3, n_samples=16, n_elites=4, iterations=2, sigma0=0.3, sigma0_later=None, min_std=0.0,
+                gamma=0.9, rho=0.95, lambda_u=1.0, continuation="hold", proposal="none",
+                search=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=()), compile=False)
+    alg1 = PlannerConfig(**base, warm_start=False, carry_best=False)
+    target = torch.full((3, scenario.n_uavs, 3), 0.4)
+    seen = []
+
+    def score(a):
+        seen.append(a.clone())
+        return -((a - target) ** 2).flatten(1).sum(-1)
+
+    p = AnchoredCEMPlanner(cfg=alg1, n_uavs=scenario.n_uavs, device="cpu", seed=2)
+    first, r1 = p.plan(score)
+    p.reset(0)
+    again, _ = p.plan(score)
+    assert torch.equal(first, again) and torch.equal(p.warm_mean(), torch.zeros_like(p.warm_mean()))
+    # iteration 2's population never holds iteration 1's best (sampled afresh) ...
+    best1 = seen[0][torch.argmax(score(seen[0]))]
+    assert not any(torch.equal(c, best1) for c in seen[1])
+    # ... while with carry_best it is the population's first member
+    seen.clear()
+    q = AnchoredCEMPlanner(cfg=PlannerConfig(**base, warm_start=False, carry_best=True), n_uavs=scenario.n_uavs,
+                           device="cpu", seed=2)
+    q.plan(score)
+    best1 = seen[0][torch.argmax(score(seen[0]))]
+    assert torch.equal(seen[1][0], best1)
+    assert alg1.later_std == 0.3 and dataclasses.replace(alg1, sigma0_later=0.05).later_std == 0.05

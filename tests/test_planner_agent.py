@@ -122,3 +122,58 @@ def test_a_finished_checkpoint_resumes_only_on_the_same_training_data(resolved, 
     fresh.fit(changed, run_dir=tmp_path / "train")
     differs = [k for k, v in fresh.model.state_dict().items() if not torch.equal(v, weights[k])]
     assert "rssm.gru.weight_hh" in differs, differs
+
+
+def test_dswm_is_algorithm_1_and_each_ablation_changes_one_thing(resolved, raw):
+    """dswm: mean 0 and one sigma0 each slot, plain CEM, no seed; the ablations differ in one setting each."""
+    built = {m: build(m, resolved, 0) for m in ("dswm", "dswm_wo_unc", "dswm_wo_dec", "dswm_plus")}
+    p = built["dswm"].settings.planner
+    assert (p.warm_start, p.carry_best, p.continuation, p.proposal, p.sigma0_later, p.min_std) == \
+        (False, False, "hold", "none", None, 0.0)
+    assert p.later_std == p.sigma0 and p.horizon == 15
+    assert built["dswm"].search_settings() is None       # Algorithm 1 runs no BCD
+
+    def diff(a, b):
+        pa, pb = dataclasses.asdict(a.settings), dataclasses.asdict(b.settings)
+        return {(sec, k) for sec in pa if isinstance(pa[sec], dict) for k in pa[sec] if pa[sec][k] != pb[sec][k]}
+
+    assert diff(built["dswm"], built["dswm_wo_unc"]) == {("planner", "lambda_u")}
+    assert diff(built["dswm"], built["dswm_wo_dec"]) == {("world_model", "service_head")}
+    plus = built["dswm_plus"]
+    assert plus.settings.planner.proposal == "bcd" and plus.settings.planner.warm_start
+    assert plus.search_settings() == resolved.methods["greedy"].options   # the one shared search
+
+
+def test_persistence_and_perfect_forecast_plan_on_the_maps_they_claim(resolved, core):
+    """dswm_plus_persist imagines the current map held constant; perfect the true maps x_{t+1..t+H}, the last one
+    standing in past the day's end; both share DSWM+'s planner and the shared search."""
+    import torch
+
+    plus = resolved.methods["dswm_plus"].options.planner
+    persist, perfect = build("dswm_plus_persist", resolved, 0), build("perfect", resolved, 0)
+    assert persist.settings.planner == perfect.settings.planner == plus
+    assert not persist.learns and not perfect.learns and perfect.clairvoyant and not persist.clairvoyant
+    h = plus.horizon
+    obs = core.reset([0])
+    ctx = _ctx(core)
+    with pytest.raises(ValueError, match="clairvoyant"):
+        perfect.reset(ctx)
+    true = core.demand[0].reshape(core.demand.shape[1], -1)                 # (T, G)
+    perfect.reset(dataclasses.replace(ctx, demand=core.demand[0].numpy()))
+    persist.reset(ctx)
+    one = {k: v[0] for k, v in obs.items()}
+    demand = torch.as_tensor(np.asarray(one["demand"]), dtype=torch.float32)
+    fleet = core.state.__class__(*(t[0] for t in core.state))
+    scorer, first = persist._scorer(one, demand, fleet)
+    torch.testing.assert_close(scorer.override, demand[-1].reshape(1, -1).expand(h, -1))
+    torch.testing.assert_close(first, demand[-1].reshape(-1))
+    scorer, first = perfect._scorer(one, demand, fleet)                      # decision at slot 0
+    torch.testing.assert_close(scorer.override, true[1:1 + h])
+    torch.testing.assert_close(first, true[1])
+    perfect.t = true.shape[0] - 3                                            # three slots before the day's end
+    scorer, _ = perfect._scorer(one, demand, fleet)
+    torch.testing.assert_close(scorer.override[:2], true[-2:])
+    torch.testing.assert_close(scorer.override[2:], true[-1:].expand(h - 2, -1))
+    # both act through the controller interface
+    a = perfect.act(one)
+    assert a.shape == (core.scenario.n_uavs, 3) and np.abs(a).max() <= 1.0

@@ -6,10 +6,11 @@ import polars as pl
 import pytest
 
 from dswm.methods.registry import BUILTIN
-from dswm.protocol.tables import CROSS_COLUMNS, MAIN_COLUMNS, build_tables
+from dswm.protocol.tables import CROSS_COLUMNS, MAIN_COLUMNS, ROOM_COLUMNS, build_tables
 
 TABLES = {"main_dataset": "milan", "decimals": 3, "split_labels": {"id": "Weekday", "ood": "Holiday"},
-          "class_order": ["world model", "model-free", "deployment", "upper bound"]}
+          "class_order": ["world model", "model-free", "deployment", "upper bound"],
+          "room": {"low": "static", "high": "oracle", "fill": ["greedy"], "min_room": 0.168}}
 
 # (dataset, method, seed) -> ({ID day: SR}, {OOD day: SR})
 SCORES = {
@@ -100,6 +101,29 @@ def test_tables_state_the_profile_and_where_the_data_came_from(tmp_path):
     assert "| Static (K-means) | deployment | 0.730±0.014 | 0.765±0.007 | 2 |" in md
     tex = (tmp_path / "tables" / "milan_main.tex").read_text()
     assert r"0.730$\pm$0.014" in tex and r"\toprule" in tex and r"\label{tab:milan}" in tex
+
+
+def test_room_footnote_by_hand(tmp_path):
+    build(tmp_path)
+    rows = read_csv(tmp_path / "tables" / "room.csv")
+    assert list(rows[0]) == ROOM_COLUMNS
+    got = {(r["dataset"], r["split"]): r for r in rows}
+    assert sorted(got) == [("milan", "holiday"), ("milan", "weekday"), ("shanghai", "holiday"), ("shanghai", "weekday")]
+    # Milan weekday: static 0.73 -> oracle 0.90, room 0.17; greedy 0.80 fills 0.07 / 0.17
+    mw = got[("milan", "weekday")]
+    assert float(mw["room"]) == pytest.approx(0.17) and float(mw["filled"]) == pytest.approx(0.07 / 0.17)
+    # Shanghai holiday: 0.45 -> 0.71, greedy 0.62 fills 0.17 / 0.26
+    assert float(got[("shanghai", "holiday")]["filled"]) == pytest.approx(0.17 / 0.26)
+    main = (tmp_path / "tables" / "milan_main.md").read_text()
+    assert "Static (K-means) -> Oracle (clairvoyant)" in main
+    assert "Milan Weekday 0.730 -> 0.900 (room +0.170; gained: Greedy (BCD) +0.070 (41%))" in main
+    assert "Shanghai Weekday" not in main                  # the main table speaks of its dataset only
+    cross = (tmp_path / "tables" / "cross_dataset.md").read_text()
+    assert "Shanghai Holiday 0.450 -> 0.710 (room +0.260; gained: Greedy (BCD) +0.170 (65%))" in cross
+    # Milan holiday's room, 0.93 - 0.765 = 0.165, is below min_room 0.168: its gain is given, not a share
+    assert got[("milan", "holiday")]["filled"] == ""
+    assert "Milan Holiday 0.765 -> 0.930 (room +0.165; gained: Greedy (BCD) +0.070)" in main
+    assert r"41\%" in (tmp_path / "tables" / "milan_main.tex").read_text()
 
 
 def test_results_of_another_profile_are_refused(tmp_path):

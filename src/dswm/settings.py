@@ -25,6 +25,7 @@ import yaml
 
 from dswm.config import ConfigError, build, canonical_json, stable_hash, to_plain
 from dswm.methods import registry
+from dswm.methods.search import SearchSettings
 from dswm.sim.scenario import Scenario
 from prep.config import DATASETS, DatasetsConfig
 
@@ -154,6 +155,26 @@ class CalibrationSettings:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class SelectionSettings:
+    """config.yaml ``selection``: what the ``select`` rule compares on TRAINING days (docs/PROTOCOL.md §5)."""
+
+    dataset: str
+    """The dataset whose training days are used."""
+    fit_days: int
+    """The first ``fit_days`` training days fit the world model; the later training days validate."""
+    search_candidates: tuple[SearchSettings, ...]
+    """Candidate strengths of the shared BCD ``search`` (Greedy on the validation days)."""
+    search_budget_ms: float
+    """Largest Greedy planning time per day-slot a chosen search may cost."""
+    planner_method: str
+    """The method of ``methods.run`` whose planner's open values are chosen (``dswm``, Algorithm 1)."""
+    gamma: tuple[float, ...]
+    """Candidate planner discounts."""
+    sigma0: tuple[float, ...]
+    """Candidate initial sampling stds."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MlflowSettings:
     store: str
     artifacts: str
@@ -168,11 +189,26 @@ class SplitLabels:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class RoomSettings:
+    """config.yaml ``tables.room``: the footnote on the room a forecast could fill."""
+
+    low: str
+    """The method that plans on the current map (Greedy)."""
+    high: str
+    """The method that plans on the true future maps (the perfect forecast)."""
+    fill: tuple[str, ...]
+    """The methods whose share of the room the footnote gives."""
+    min_room: float
+    """The smallest room whose share is given."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class TablesSettings:
     main_dataset: str
     decimals: int
     split_labels: SplitLabels
     class_order: tuple[str, ...]
+    room: RoomSettings
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -223,6 +259,8 @@ class Settings:
     methods: dict[str, MethodSettings]
     """The methods of ``methods.run``, in that order (table order within a table class)."""
     calibration: CalibrationSettings
+    selection: SelectionSettings | None
+    """None in the audit's slice (the audit reads no selection)."""
     mlflow: MlflowSettings
     tables: TablesSettings
     datasets: DatasetsConfig
@@ -308,6 +346,7 @@ def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
         evaluation=build(EvaluationSettings, evaluation, "evaluation"),
         methods=_methods(config, profile),
         calibration=build(CalibrationSettings, config["calibration"], "calibration"),
+        selection=build(SelectionSettings, config["selection"], "selection"),
         mlflow=build(MlflowSettings, config["mlflow"], "mlflow"),
         tables=build(TablesSettings, config["tables"], "tables"),
         datasets=build(DatasetsConfig, config["datasets"], "datasets"),
@@ -438,5 +477,21 @@ def tables_slice(settings: Settings) -> dict:
 
 
 def audit_slice(settings: Settings) -> dict:
-    """What the audit reads: every setting but the display ones."""
-    return to_plain(dataclasses.replace(settings, display=None))
+    """What the audit reads: every setting but the display ones and the selection's."""
+    return to_plain(dataclasses.replace(settings, display=None, selection=None))
+
+
+def select_slice(settings: Settings) -> dict:
+    """What the ``select`` job reads: the profile, the selection, the scenario, the evaluation settings and the
+    planner method with all its settings.
+
+    Raises:
+        ConfigError: ``selection.planner_method`` is not in ``methods.run``.
+    """
+    name = settings.selection.planner_method
+    if name not in settings.methods:
+        raise ConfigError(f"config.yaml: key 'selection.planner_method' is {name!r}, which 'methods.run' does not "
+                          f"list (found {', '.join(settings.methods)})")
+    return {"profile": settings.profile, "selection": to_plain(settings.selection),
+            "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
+            "method": to_plain(settings.methods[name])}

@@ -14,6 +14,7 @@ rule tables:
         cross_md="results/tables/cross_dataset.md",
         cross_tex="results/tables/cross_dataset.tex",
         cross_csv="results/tables/cross_dataset.csv",
+        room_csv="results/tables/room.csv",  # the room a forecast could fill (tables.room), per dataset and split
     params:
         settings=S.param(S.tables_slice(SETTINGS)),
     log:

@@ -108,6 +108,12 @@ class Controller:
         """
         return options
 
+    def search_settings(self) -> Any:
+        """The per-slot block-coordinate-descent search this method runs (a ``dswm.methods.search.SearchSettings``),
+        or None when it runs none. Every BCD of a run must use the one ``search`` section of config.yaml; each result
+        file records this value and the audit compares it across methods (docs/AUDIT.md)."""
+        return None
+
     def fit(self, train_core, *, run_dir) -> dict:
         """Train on a core over the TRAINING days only; return the training manifest (docs/ARCHITECTURE.md).
 

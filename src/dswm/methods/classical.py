@@ -7,7 +7,7 @@
   served.
 
 All three are batched: the evaluated days of a job are stepped together. Greedy's and the oracle's strength is
-their :class:`~dswm.methods.search.SearchSettings` (config.yaml ``methods.greedy``, ``methods.oracle``).
+the project's one :class:`~dswm.methods.search.SearchSettings` (config.yaml ``search``), shared by every BCD.
 """
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from typing import Any, ClassVar, Mapping, Sequence
 import numpy as np
 import torch
 
-from dswm.config import ConfigError
 from dswm.methods.base import Controller, DayContext
 from dswm.methods.search import SearchSettings, bcd_search, to_action
 from dswm.sim.core import fleet_state_from_obs
@@ -72,9 +71,18 @@ class GreedyController(BatchedController):
     def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: SearchSettings):
         super().__init__(name=name, seed=seed, device=device, options=options)
 
+    @classmethod
+    def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> SearchSettings:
+        """The project's one search (config.yaml ``search``): every BCD of a run searches alike."""
+        return cls.options_from_plain(name=name, data=config["search"], where="search")
+
     @property
     def search(self) -> SearchSettings:
         """The search's strength (its ``options``)."""
+        return self.options
+
+    def search_settings(self) -> SearchSettings:
+        """Its BCD search (the shared ``search`` section)."""
         return self.options
 
     def reset_batch(self, ctxs: Sequence[DayContext]) -> None:
@@ -106,16 +114,11 @@ class OracleController(GreedyController):
     """Clairvoyant upper bound: the BCD search on the TRUE next-slot map (docs/PROTOCOL.md §5).
 
     Args:
-        name, seed, device, options: see GreedyController; ``options.bw_logits`` must not be empty.
+        name, seed, device, options: see GreedyController (the shared search).
     """
 
     clairvoyant = True
 
-    def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: SearchSettings):
-        super().__init__(name=name, seed=seed, device=device, options=options)
-        if not options.bw_logits:
-            raise ConfigError(f"config.yaml: key 'methods.{name}.bw_logits' must list the bandwidth logits the "
-                              f"oracle searches (including 0); found []")
 
     def reset_batch(self, ctxs: Sequence[DayContext]) -> None:
         """Take each day's true demand (T, R, C) from the context (handed to clairvoyant controllers only)."""

@@ -29,12 +29,17 @@ def _spec(name: str, target: str, label: str, table_class: str) -> MethodSpec:
 
 
 BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
-    _spec("dswm", "dswm.methods.dswm.agent:DSWMController", "DSWM (ours)", "world model"),
+    _spec("dswm", "dswm.methods.dswm.agent:DSWMController", "DSWM (Algorithm 1)", "world model"),
     _spec("dswm_wo_unc", "dswm.methods.dswm.agent:DSWMController", "w/o unc", "ablation"),
     _spec("dswm_wo_dec", "dswm.methods.dswm.agent:DSWMController", "w/o dec", "ablation"),
+    _spec("dswm_plus", "dswm.methods.dswm.agent:DSWMController", "DSWM+ (this project)", "world model"),
+    _spec("dswm_plus_persist", "dswm.methods.dswm.agent:PersistenceController", "DSWM+ on persistence (probe)",
+          "ablation"),
     _spec("greedy", "dswm.methods.classical:GreedyController", "Greedy (BCD)", "model-free"),
     _spec("static", "dswm.methods.classical:StaticController", "Static (K-means)", "deployment"),
     _spec("oracle", "dswm.methods.classical:OracleController", "Oracle (clairvoyant)", "upper bound"),
+    _spec("perfect", "dswm.methods.dswm.agent:PerfectForecastController", "Perfect forecast (clairvoyant)",
+          "upper bound"),
 ]}
 """Built-in methods (docs/PROTOCOL.md §5). The other paper baselines are added here as they are implemented."""
 

@@ -26,7 +26,7 @@ from dswm.sim.scenario import Scenario
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SearchSettings:
-    """Strength of a BCD search (config.yaml ``methods.greedy``, ``methods.oracle``)."""
+    """Strength of a BCD search (config.yaml ``search``, the one search every BCD of the project runs)."""
 
     sweeps: int
     """Passes over the UAVs per slot."""

@@ -3,7 +3,8 @@
 * :func:`train_job`     fit a learning method on the TRAINING days; model file + train_manifest.json (with the
                         SHA-256 of the checkpoint, the model file and every prepared file it read).
 * :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet (with the record of the model it
-                        loaded: path, SHA-256, training source) + trajectory.npz.
+                        loaded: path, SHA-256, training source, and the record of the method's resolved
+                        settings and BCD search) + trajectory.npz.
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
 
@@ -21,8 +22,9 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from dswm.config import build, stable_hash
+from dswm.config import build, stable_hash, to_plain
 from dswm.methods import registry
+from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.protocol import calibration, evaluation, tables
@@ -164,8 +166,9 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
         display: how the job reports progress (not part of its rerun trigger).
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
-    training manifest. days.parquet records the model (:func:`model_record`) in its metadata; the MLflow run is
-    tagged ``train_source``, ``model_path`` and ``model_sha256``.
+    training manifest. days.parquet records the model (:func:`model_record`) and the method's resolved settings
+    with the BCD search it runs (:func:`method_record`) in its metadata; the MLflow run is tagged ``train_source``,
+    ``model_path`` and ``model_sha256``.
     """
     ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
@@ -183,11 +186,12 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
             run.set_tags({"train_source": source, "model_path": record["model"],
                           "model_sha256": record["model_sha256"]})
             ctrl.load(model)
+        settings_record = method_record(m, ctrl)
         result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
                                      limits={"id": limits.id, "ood": limits.ood}, profile=job["profile"],
                                      device=ev.device, batch_days=ev.batch_days,
                                      progress_interval_s=display.progress_mininterval_s)
-        evaluation.write_days(result.days, days_out, record)
+        evaluation.write_days(result.days, days_out, record, settings_record)
         save_npz(trajectory_out, **result.trajectories)
         for row in result.days.iter_rows(named=True):
             run.log_metrics({f"day/{k}": row[k] for k in DAY_METRICS}, step=row["day"])
@@ -197,6 +201,22 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
         run.log_artifact(days_out)
         run.log_artifact(trajectory_out)
     return result
+
+
+def method_record(m: MethodSettings, ctrl: Controller) -> dict:
+    """What an evaluation records about the method it ran (``evaluation.METHOD_RECORD_FIELDS``).
+
+    Args:
+        m: the method's registration and typed settings (``MethodSettings`` of the job's slice).
+        ctrl: the controller built from ``m``; its ``search_settings()`` is the BCD search it runs, or None.
+
+    Returns:
+        {"method": m.name, "class": m.target, "options": plain ``m.options``, "search": plain search settings or
+        None}, every value plain JSON (``dswm.config.to_plain``).
+    """
+    search = ctrl.search_settings()
+    return {"method": m.name, "class": m.target, "options": to_plain(m.options),
+            "search": None if search is None else to_plain(search)}
 
 
 def calibrate_job(*, job: Mapping[str, Any], tensor_dir: str | Path, out: str | Path) -> dict:
@@ -229,3 +249,36 @@ def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], me
     return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,
                                run_order=[m["name"] for m in job["methods"]], tables_cfg=job["tables"],
                                profile=job["profile"], out_dir=out_dir)
+
+
+def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, out: str | Path,
+               run_dir: str | Path) -> dict:
+    """Choose the shared search's strength and the planner's open values on TRAINING days
+    (``dswm.protocol.selection``); write and return the JSON report.
+
+    Args:
+        job: the plain form of ``dswm.settings.select_slice``.
+        display: how the job reports progress.
+        run_dir: where the selection's world model writes its checkpoint.
+    """
+    from dswm.protocol import selection
+    from dswm.settings import SelectionSettings
+
+    ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
+    sel = build(SelectionSettings, job["selection"], "selection")
+    tensor = _load_tensor(tensor_dir)
+    fit_days, val_days = selection.split_training_days(tensor, sel.fit_days)
+    score_kw = {"tensor": tensor, "scenario": scenario, "days": val_days, "seed": 0, "device": ev.device,
+                "batch_days": ev.batch_days, "progress_interval_s": display.progress_mininterval_s}
+    greedy = registry.BUILTIN["greedy"].target
+    search = selection.select_search(
+        make=lambda cand: registry.build("greedy", target=greedy, options=cand, seed=0, device=ev.device),
+        candidates=sel.search_candidates, budget_ms=sel.search_budget_ms, **score_kw)
+    torch.manual_seed(0)
+    ctrl = registry.build(m.name, target=m.target, options=m.options, seed=0, device=ev.device)
+    planner = selection.select_planner(controller=ctrl, fit_days=fit_days, gammas=sel.gamma, sigma0s=sel.sigma0,
+                                       run_dir=run_dir, **score_kw)
+    report = {"dataset": tensor.meta["dataset"], "profile": job["profile"], "torch_threads": ev.torch_threads,
+              "validation_days": [tensor.labels[d] for d in val_days], "search": search, "planner": planner}
+    write_json(out, report)
+    return report

@@ -5,7 +5,8 @@ K-means of the mean TRAINING map; batteries drawn from (dataset, day) alone). A 
 its 144 served-ratio values (SR_0 of the initial deployment, then one per decision). The evaluated days of a
 job are stepped as one batch when the controller is batched. The per-day table this module returns is the
 source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results"); :func:`write_days`
-stores it with the record of the model the evaluation loaded in the file's metadata.
+stores it with two records in the file's metadata: the model the evaluation loaded (:data:`MODEL_RECORD_KEY`)
+and the method's resolved settings, its BCD search included (:data:`METHOD_RECORD_KEY`).
 """
 from __future__ import annotations
 
@@ -35,6 +36,13 @@ MODEL_RECORD_KEY = "dswm.evaluated_model"
 """days.parquet metadata key of the model record: JSON {method, train_source, model, model_sha256,
 train_manifest}; the last four are null for a method that does not learn."""
 MODEL_RECORD_FIELDS = ("method", "train_source", "model", "model_sha256", "train_manifest")
+
+METHOD_RECORD_KEY = "dswm.method_settings"
+"""days.parquet metadata key of the method record: JSON {method, class, options, search}: the evaluated method,
+its controller class ("package.module:ClassName"), its resolved typed settings in plain form
+(``dswm.config.to_plain`` of ``MethodSettings.options``) and the block-coordinate-descent search it ran
+(``to_plain`` of ``Controller.search_settings()``; null for a method that runs none)."""
+METHOD_RECORD_FIELDS = ("method", "class", "options", "search")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -67,12 +75,12 @@ def eval_days(tensor, limits: Mapping[str, int | None]) -> dict[str, list[int]]:
 
 def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str]) -> str:
     """Hash of the evaluated days (indices and labels per split); the audit compares it across methods."""
-    return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in ("id", "ood")}})
+    return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in days}})
 
 
 def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, limits: Mapping[str, int | None],
              profile: str, device: str, batch_days: bool, progress_interval_s: float,
-             trajectory: bool = True) -> EvalResult:
+             trajectory: bool = True, days: Mapping[str, list[int]] | None = None) -> EvalResult:
     """Run ``controller`` on the evaluation days of ``tensor``.
 
     Args:
@@ -86,6 +94,8 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
         batch_days: step every evaluated day as one batch when the controller is batched.
         progress_interval_s: tqdm refresh interval.
         trajectory: keep fleet positions per slot of the first day of each split.
+        days: {split: tensor days} run instead of the configured evaluation days (the selection on TRAINING
+            days, ``dswm.protocol.selection``, passes {"train": [...]}); ``limits`` is then not used.
 
     Returns:
         EvalResult.
@@ -93,9 +103,9 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
     torch.manual_seed(seed)
     np.random.seed(seed)
     dataset = tensor.meta["dataset"]
-    days = eval_days(tensor, limits)
+    days = eval_days(tensor, limits) if days is None else {s: [int(d) for d in v] for s, v in days.items()}
     labels = tensor.labels
-    order = [(s, d) for s in ("id", "ood") for d in days[s]]  # core index i <-> order[i]
+    order = [(s, d) for s in days for d in days[s]]  # core index i <-> order[i]
     core = core_from_tensor(tensor, scenario, [d for _, d in order], device=device)
     grid, init_pos = core.grid, core.init_pos.cpu().numpy()
     geometry, cells = grid.geometry(), grid.cells(device=device)
@@ -108,7 +118,7 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
 
     n, steps = len(order), scenario.slots_per_day - 1
     batches = [list(range(n))] if (batch_days and controller.batched) else [[i] for i in range(n)]
-    keep = {days["id"][0]: "id", days["ood"][0]: "ood"} if trajectory else {}
+    keep = {days[s][0]: s for s in days if days[s]} if trajectory else {}
     rows, traj = [], {}
     bar = tqdm(total=n * steps, desc=f"{dataset}/{controller.name}/seed{seed}", unit="day-slot",
                file=sys.stderr, mininterval=progress_interval_s, dynamic_ncols=False, ascii=True)
@@ -164,19 +174,65 @@ def split_summary(days: pl.DataFrame) -> dict[str, float]:
     return out
 
 
-def write_days(days: pl.DataFrame, path: str | Path, model_record: Mapping[str, Any]) -> None:
-    """Write days.parquet atomically, with ``model_record`` as JSON under :data:`MODEL_RECORD_KEY` in its metadata.
+def _check_record(path: str | Path, what: str, record: Mapping[str, Any], fields: tuple[str, ...]) -> None:
+    """Raise ValueError naming ``path`` when ``record`` is not a mapping holding every one of ``fields``."""
+    if not isinstance(record, Mapping):
+        raise ValueError(f"{path}: {what} record is {type(record).__name__}; expected a mapping with the fields "
+                         f"{list(fields)}")
+    missing = [k for k in fields if k not in record]
+    if missing:
+        raise ValueError(f"{path}: {what} record lacks {missing}; expected the fields {list(fields)}")
+
+
+def write_days(days: pl.DataFrame, path: str | Path, model_record: Mapping[str, Any],
+               method_record: Mapping[str, Any]) -> None:
+    """Write days.parquet atomically, with two JSON records in its metadata: ``model_record`` under
+    :data:`MODEL_RECORD_KEY` and ``method_record`` under :data:`METHOD_RECORD_KEY`.
 
     Args:
         days: the per-day table (``EvalResult.days``).
         path: the result file.
         model_record: {field: value} for every field of :data:`MODEL_RECORD_FIELDS`.
+        method_record: {field: value} for every field of :data:`METHOD_RECORD_FIELDS`
+            (``dswm.pipeline.jobs.method_record``): ``method`` and ``class`` strings, ``search`` a mapping or None,
+            everything JSON-serializable.
+
+    Raises:
+        ValueError: a record lacks a field or holds a value of the wrong kind; nothing is written.
     """
-    missing = [k for k in MODEL_RECORD_FIELDS if k not in model_record]
-    if missing:
-        raise ValueError(f"{path}: model record lacks {missing}; expected the fields {list(MODEL_RECORD_FIELDS)}")
+    _check_record(path, "model", model_record, MODEL_RECORD_FIELDS)
+    _check_record(path, "method", method_record, METHOD_RECORD_FIELDS)
+    if not isinstance(method_record["method"], str) or not method_record["method"]:
+        raise ValueError(f"{path}: method record: method = {method_record['method']!r}; expected the method name")
+    cls = method_record["class"]
+    if not isinstance(cls, str) or ":" not in cls:
+        raise ValueError(f"{path}: method record: class = {cls!r}; expected \"package.module:ClassName\"")
+    if method_record["search"] is not None and not isinstance(method_record["search"], Mapping):
+        raise ValueError(f"{path}: method record: search = {method_record['search']!r}; expected the plain "
+                         f"search settings (a mapping) or None")
+    metadata = {}
+    for key, record in ((MODEL_RECORD_KEY, model_record), (METHOD_RECORD_KEY, method_record)):
+        try:
+            metadata[key] = json.dumps(dict(record), sort_keys=True, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {key} record is not plain JSON ({exc}); expected the plain form "
+                             f"(dswm.config.to_plain) of its values") from exc
     with atomic_path(path) as tmp:
-        days.write_parquet(tmp, metadata={MODEL_RECORD_KEY: json.dumps(dict(model_record), sort_keys=True)})
+        days.write_parquet(tmp, metadata=metadata)
+
+
+def _read_record(path: str | Path, key: str) -> dict | None:
+    """The JSON object stored under metadata ``key`` of a parquet file, or None when the key is absent."""
+    raw = pl.read_parquet_metadata(path).get(key)
+    if raw is None:
+        return None
+    try:
+        record = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: metadata {key} is not JSON ({exc})") from exc
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: metadata {key} = {raw!r}; expected a JSON object")
+    return record
 
 
 def read_model_record(path: str | Path) -> dict | None:
@@ -185,13 +241,14 @@ def read_model_record(path: str | Path) -> dict | None:
     Raises:
         ValueError: the record is not a JSON object.
     """
-    raw = pl.read_parquet_metadata(path).get(MODEL_RECORD_KEY)
-    if raw is None:
-        return None
-    try:
-        record = json.loads(raw)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: metadata {MODEL_RECORD_KEY} is not JSON ({exc})") from exc
-    if not isinstance(record, dict):
-        raise ValueError(f"{path}: metadata {MODEL_RECORD_KEY} = {raw!r}; expected a JSON object")
-    return record
+    return _read_record(path, MODEL_RECORD_KEY)
+
+
+def read_method_record(path: str | Path) -> dict | None:
+    """The method record :func:`write_days` stored in days.parquet ({method, class, options, search}), or None
+    for a file written without one.
+
+    Raises:
+        ValueError: the record is not a JSON object.
+    """
+    return _read_record(path, METHOD_RECORD_KEY)

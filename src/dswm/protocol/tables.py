@@ -8,6 +8,10 @@ A seed's score on a split is the mean of its days' ``sr_mean``; the table report
 deviation (ddof=1; 0 with a single seed) of those scores over seeds. Each table states the profile and
 whether each dataset's data was the embedded demo or the real published files. Every file is written in
 Markdown, LaTeX and CSV (the CSV columns are fixed for other tools).
+
+Both tables carry a footnote on the room a forecast could fill (``tables.room``): per dataset and split, the
+served ratio from a method that plans on the current map (Greedy) to one that plans on the true future maps
+(the perfect forecast), and the share of that room each forecasting method fills; ``room.csv`` holds the numbers.
 """
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ import polars as pl
 from prep.atomic import write_text
 from prep.tensor import read_meta
 
+ROOM_COLUMNS = ["dataset", "split", "low", "high", "low_mean", "high_mean", "room", "method", "method_mean",
+                "filled"]
 MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
 CROSS_COLUMNS = ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
 DATASET_LABELS = {"milan": "Milan", "shanghai": "Shanghai", "yjmob": "YJMob"}
@@ -102,14 +108,14 @@ def provenance(profile: str, sources: Mapping[str, str]) -> str:
 def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str, str | Path],
                  specs: Mapping[str, Any], run_order: list[str], tables_cfg: Mapping[str, Any],
                  profile: str, out_dir: str | Path) -> dict[str, pl.DataFrame]:
-    """Write <main_dataset>_main.{md,tex,csv} and cross_dataset.{md,tex,csv} into ``out_dir``.
+    """Write <main_dataset>_main.{md,tex,csv}, cross_dataset.{md,tex,csv} and room.csv into ``out_dir``.
 
     Args:
         result_paths: every days.parquet of the profile.
         meta_paths: {dataset: meta.json of its prepared tensor} (for demo/real).
         specs: {method: MethodSpec} (label and class of each row).
         run_order: methods in config order.
-        tables_cfg: the ``tables`` section (main_dataset, decimals, split_labels, class_order).
+        tables_cfg: the ``tables`` section (main_dataset, decimals, split_labels, class_order, room).
         profile: the profile the results must come from.
         out_dir: destination directory.
 
@@ -130,6 +136,9 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
     classes = {m: specs[m].table_class for m in methods}
     order = _order(methods, classes, list(tables_cfg["class_order"]))
     out_dir = Path(out_dir)
+    all_datasets = [ds for ds in DATASET_LABELS if ds in set(summary["dataset"])]
+    room = room_rows(summary, tables_cfg["room"], all_datasets)
+    write_text(out_dir / "room.csv", _csv(room, ROOM_COLUMNS))
 
     # Table III: the main dataset
     main_ds = tables_cfg["main_dataset"]
@@ -154,7 +163,11 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         md.append(f"| {label} | {r['class']} | {wk} | {hd} | {r['n_seeds']} |")
         tex_rows.append(f"{_tex_escape(label)} & {_tex_escape(r['class'])} & {_tex_escape(wk)} & "
                         f"{_tex_escape(hd)} \\\\")
-    tex = _tex_table(caption=f"{title}. {note}.", label=f"tab:{main_ds}", spec="@{}llcc@{}",
+    main_note = room_note([r for r in room if r["dataset"] == main_ds], specs, tables_cfg["split_labels"], d,
+                          tables_cfg["room"]["min_room"])
+    if main_note:
+        md += ["", main_note]
+    tex = _tex_table(caption=f"{title}. {note}. {main_note}".rstrip(), label=f"tab:{main_ds}", spec="@{}llcc@{}",
                      header=f"Method & Class & {id_label} & {ood_label} \\\\", rows=tex_rows)
     write_text(out_dir / f"{main_ds}_main.md", "\n".join(md) + "\n")
     write_text(out_dir / f"{main_ds}_main.tex", tex)
@@ -180,12 +193,69 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
     seeds = "; ".join(f"{DATASET_LABELS[ds]} {summary.filter(pl.col('dataset') == ds)['n_seeds'].max()} seed(s)"
                       for ds in datasets)
     md += ["", f"Seeds: {seeds}."]
-    tex = _tex_table(caption=f"{title}; {seeds}. {note}.", label="tab:cross", spec="@{}l" + "c" * len(datasets) + "@{}",
+    cross_note = room_note(room, specs, tables_cfg["split_labels"], d, tables_cfg["room"]["min_room"])
+    if cross_note:
+        md += ["", cross_note]
+    tex = _tex_table(caption=f"{title}; {seeds}. {note}. {cross_note}".rstrip(), label="tab:cross", spec="@{}l" + "c" * len(datasets) + "@{}",
                      header="Method & " + " & ".join(heads) + " \\\\", rows=tex_rows)
     write_text(out_dir / "cross_dataset.md", "\n".join(md) + "\n")
     write_text(out_dir / "cross_dataset.tex", tex)
     write_text(out_dir / "cross_dataset.csv", _csv(cross_rows, CROSS_COLUMNS))
     return {f"{main_ds}_main": main_df, "cross_dataset": cross_df}
+
+
+def room_rows(summary: pl.DataFrame, room: Mapping[str, Any], datasets: list[str]) -> list[dict]:
+    """The room a forecast could fill, per dataset and split (columns :data:`ROOM_COLUMNS`).
+
+    Args:
+        summary: :func:`summarize`'s table.
+        room: ``tables.room``: ``low`` (plans on the current map), ``high`` (plans on the true future maps),
+            ``fill`` (the methods whose share of the room is reported) and ``min_room`` (the smallest room whose
+            share is reported: a share of a room within seed noise means nothing).
+        datasets: in table order.
+
+    Returns:
+        One row per (dataset, split, method of ``fill`` present): room = high - low, filled = (method - low) /
+        room (None when the room is below ``min_room``); no row for a dataset lacking ``low`` or ``high``.
+    """
+    cells = {(r["method"], r["dataset"]): r for r in summary.iter_rows(named=True)}
+    rows = []
+    for ds in datasets:
+        lo, hi = cells.get((room["low"], ds)), cells.get((room["high"], ds))
+        if lo is None or hi is None:
+            continue
+        for split in ("weekday", "holiday"):
+            gap = hi[f"{split}_mean"] - lo[f"{split}_mean"]
+            for m in room["fill"]:
+                if (m, ds) not in cells:
+                    continue
+                got = cells[(m, ds)][f"{split}_mean"]
+                rows.append({"dataset": ds, "split": split, "low": room["low"], "high": room["high"],
+                             "low_mean": lo[f"{split}_mean"], "high_mean": hi[f"{split}_mean"], "room": gap,
+                             "method": m, "method_mean": got,
+                             "filled": (got - lo[f"{split}_mean"]) / gap if gap >= room["min_room"] else None})
+    return rows
+
+
+def room_note(rows: list[dict], specs: Mapping[str, Any], split_labels: Mapping[str, str], d: int,
+              min_room: float) -> str:
+    """The footnote of :func:`room_rows`: per dataset and split, low -> high and the share each method fills."""
+    if not rows:
+        return ""
+    first = rows[0]
+    parts = []
+    for ds in dict.fromkeys(r["dataset"] for r in rows):
+        for split, key in (("weekday", "id"), ("holiday", "ood")):
+            sel = [r for r in rows if r["dataset"] == ds and r["split"] == split]
+            if not sel:
+                continue
+            fills = ", ".join(f"{specs[r['method']].label} {r['method_mean'] - r['low_mean']:+.{d}f}"
+                              + ("" if r["filled"] is None else f" ({100 * r['filled']:.0f}%)") for r in sel)
+            parts.append(f"{DATASET_LABELS.get(ds, ds)} {split_labels[key]} {sel[0]['low_mean']:.{d}f} -> "
+                         f"{sel[0]['high_mean']:.{d}f} (room {sel[0]['room']:+.{d}f}; gained: {fills})")
+    return (f"Room a forecast could fill, {specs[first['low']].label} -> {specs[first['high']].label}, and what "
+            f"each method gains over {specs[first['low']].label} (its share of the room when the room is at least "
+            f"{min_room:.{d}f}): " + "; ".join(parts) + ".")
 
 
 def _tex_table(*, caption: str, label: str, spec: str, header: str, rows: list[str]) -> str:

@@ -1,16 +1,18 @@
-"""``DSWMController``: the controller of the methods ``dswm``, ``dswm_wo_unc`` and ``dswm_wo_dec``.
+"""The controllers of the CEM planner over an imagined fleet (config.yaml ``dswm``).
 
-The three methods are configurations of the same code (config.yaml ``dswm.methods``): ``dswm_wo_unc`` sets
-lambda_u = 0, ``dswm_wo_dec`` replaces the decomposed physics head by an SR-MLP on the latent state. The
-profile selects ``dswm.budgets.<profile>`` (``dswm.methods.dswm.settings.resolve``): collected transitions,
-gradient steps and any planner-size reductions.
+* ``DSWMController``: ``dswm`` (the paper's Algorithm 1), its ablations ``dswm_wo_unc`` (lambda_u = 0) and
+  ``dswm_wo_dec`` (SR-MLP head), and ``dswm_plus`` (the project's planner). Per slot: filter o_t into the
+  posterior, then CEM over H-slot sequences scored by ``ImaginationScorer`` (anchored imagined demand, fleet
+  propagated by ``dswm.sim.fleet``, service head), and execute the first action of the best sequence.
+* ``PersistenceController`` (``dswm_plus_persist``): the same planner with the model's demand replaced by the
+  current map held constant over the horizon (no model, no uncertainty). It probes what the world model adds.
+* ``PerfectForecastController`` (``perfect``): the same planner fed the TRUE maps x_{t+1..t+H} (clairvoyant).
 
-Per slot (Algorithm 1): filter o_t into the posterior, then CEM over H-slot sequences scored by
-``ImaginationScorer`` (anchored imagined demand, fleet propagated by ``dswm.sim.fleet``, service head), and
-execute the first action of the best sequence; the CEM mean is carried to the next slot (warm start). With
-``planner.proposal: bcd`` the population is seeded with a block-coordinate-descent move (the greedy
-baseline's search, as strong as the oracle's) on the ANCHORED IMAGINED next-slot map, i.e. on what the world
-model expects, never on the true next map; ``dswm_wo_dec`` has no proposal (it has no service physics).
+All are configurations of one code path (``dswm.methods.dswm.settings.resolve``); the profile selects
+``dswm.budgets.<profile>`` (collected transitions, gradient steps and planner-size reductions). With
+``planner.proposal: bcd`` the population is seeded with the project's one BCD search (config.yaml ``search``) on
+the first imagined map: the model's anchored next map, the current map (persistence) or the true next map
+(perfect forecast).
 """
 from __future__ import annotations
 
@@ -23,10 +25,10 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 import torch
 
-from dswm.config import ConfigError, stable_hash, to_plain
+from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext
 from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, anchor
-from dswm.methods.dswm.settings import METHODS, DSWMSettings, resolve
+from dswm.methods.dswm.settings import DSWMSettings, resolve
 from dswm.methods.dswm.training import collect, save_training_figure, train
 from dswm.methods.dswm.world_model import WorldModel
 from dswm.methods.search import SearchSettings, bcd_search, to_action
@@ -45,8 +47,8 @@ def training_inputs_hash(core, day_ids: np.ndarray) -> str:
 
 
 class BCDProposal:
-    """The "bcd" proposal: the project's block-coordinate-descent search (``dswm.methods.search``) on the
-    anchored imagined next-slot map, with the planner's proposal search settings."""
+    """The "bcd" proposal: the project's block-coordinate-descent search (``dswm.methods.search``) on a map the
+    planner imagines for the next slot, with the shared search settings."""
 
     def __init__(self, search: SearchSettings):
         self.search = search
@@ -66,18 +68,14 @@ class BCDProposal:
         return torch.cat([move, logit.unsqueeze(-1)], dim=-1)[0]
 
 
-class DSWMController(Controller):
-    """Decision-time planner over a learned world model (see module docstring)."""
+class PlanningController(Controller):
+    """CEM over H-slot sequences of an imagined fleet; a subclass says what demand the imagination scores on
+    (:meth:`_scorer`). Settings: ``DSWMSettings`` (its ``planner`` acts here)."""
 
-    learns = True
-    shares_training = True
     options_type: ClassVar[type] = DSWMSettings
 
     def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: DSWMSettings):
-        if name not in METHODS:
-            raise ConfigError(f"DSWMController: method must be one of {METHODS}, found {name!r}")
         super().__init__(name=name, seed=seed, device=options.device, options=options)
-        self.model: WorldModel | None = None
         self.plan_ms: list[float] = []
 
     @property
@@ -87,13 +85,131 @@ class DSWMController(Controller):
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> DSWMSettings:
-        """config.yaml's ``dswm`` section merged for ``name`` and ``profile`` (``dswm.methods.dswm.settings``)."""
-        return resolve(config["dswm"], method=name, profile=profile)
+        """config.yaml's ``dswm`` section merged for ``name`` and ``profile``, with the shared ``search``
+        (``dswm.methods.dswm.settings``)."""
+        return resolve(config["dswm"], method=name, profile=profile, search=config["search"])
+
+    def search_settings(self) -> SearchSettings | None:
+        """The shared BCD search when the planner is seeded by the "bcd" proposal, else None."""
+        cfg = self.settings.planner
+        return cfg.search if cfg is not None and cfg.proposal == "bcd" else None
+
+    def _start_day(self, ctx: DayContext, grid: Grid, scenario) -> None:
+        """The planner, proposal and geometry of one day (after the subclass's checks)."""
+        if self.settings.planner is None:
+            raise RuntimeError(f"{self.name}: built with training settings only (no planner); it cannot act")
+        self.grid, self.scenario = grid, scenario
+        self.params = ServiceParams.from_scenario(scenario)
+        self.ctx, self.geom = ctx, ctx.geometry
+        self.cells = torch.as_tensor(ctx.cells, dtype=torch.float32, device=self.device)
+        cfg = self.settings.planner
+        self.planner = AnchoredCEMPlanner(cfg=cfg, n_uavs=scenario.n_uavs, device=self.device, seed=self.seed)
+        self.planner.reset(ctx.day)
+        self.proposal = None
+        if cfg.proposal == "bcd":
+            self.proposal = BCDProposal(cfg.search)
+            self.proposal.reset(ctx)
+
+    def _scorer(self, obs: Mapping[str, Any], demand: torch.Tensor, fleet) -> tuple[ImaginationScorer, torch.Tensor | None]:
+        """The scorer of this slot and the first imagined map (G,) the proposal searches on (None: no proposal).
+
+        Args:
+            obs: the observation; demand: (w+1, R, C) its maps on the device; fleet: its FleetState (K, ...).
+        """
+        raise NotImplementedError
+
+    def _proposals(self, obs: Mapping[str, Any], first_map: torch.Tensor | None) -> torch.Tensor | None:
+        """(M, H, K, 3) seed sequences: the BCD move on the first imagined map, then hold / then the previous
+        plan's continuation."""
+        if self.proposal is None:
+            return None
+        cfg, planner = self.settings.planner, self.planner
+        first = self.proposal(obs, first_map).to(self.device)
+        hold = torch.zeros(cfg.horizon, self.scenario.n_uavs, 3, device=self.device)
+        seqs = [hold.clone(), planner.warm_best() if planner.warm_best() is not None else hold.clone()]
+        for q in seqs:
+            q[0] = first
+        return torch.stack(seqs)
+
+    def act(self, obs: Mapping[str, Any]) -> np.ndarray:
+        t0 = time.perf_counter()
+        demand = torch.as_tensor(np.asarray(obs["demand"]), dtype=torch.float32, device=self.device)
+        with torch.inference_mode():
+            fleet = fleet_state_from_obs(obs["fleet"], self.grid, self.scenario)
+            fleet = type(fleet)(*(t.to(self.device) for t in fleet))
+            scorer, first_map = self._scorer(obs, demand, fleet)
+            action, _ = self.planner.plan(scorer, self._proposals(obs, first_map))
+        self._acted(action)
+        self.plan_ms.append(1000.0 * (time.perf_counter() - t0))
+        return action.cpu().numpy().astype(np.float32)
+
+    def _acted(self, action: torch.Tensor) -> None:
+        """Hook: the action (K, 3) just chosen."""
+
+    def _override_scorer(self, demand: torch.Tensor, fleet, maps: torch.Tensor) -> ImaginationScorer:
+        """A scorer on given maps (H, G) instead of the model's."""
+        cfg = self.settings.planner
+        return ImaginationScorer(model=None, latent=None, fleet=fleet, x_now=demand[-1].reshape(-1), geom=self.geom,
+                                 scenario=self.scenario, params=self.params, cells=self.cells, gamma=cfg.gamma,
+                                 rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
+                                 compile=cfg.compile, demand_override=maps)
+
+
+class PersistenceController(PlanningController):
+    """DSWM+'s planner on the current map held constant over the horizon (the probe ``dswm_plus_persist``)."""
+
+    def save(self, path) -> None:
+        """Nothing to save: no learned state."""
+
+    def load(self, path) -> None:
+        """Nothing to load."""
+
+    def reset(self, ctx: DayContext) -> None:
+        self._start_day(ctx, ctx.grid, ctx.scenario)
+
+    def _scorer(self, obs, demand, fleet):
+        x_now = demand[-1].reshape(-1)
+        maps = x_now.expand(self.settings.planner.horizon, -1)
+        return self._override_scorer(demand, fleet, maps), x_now
+
+
+class PerfectForecastController(PersistenceController):
+    """DSWM+'s planner fed the TRUE maps x_{t+1..t+H} (``perfect``): what any forecast could add, at most.
+    Past the day's last slot the last map stands in (those steps follow the day's end)."""
+
+    clairvoyant = True
+
+    def reset(self, ctx: DayContext) -> None:
+        if ctx.demand is None:
+            raise ValueError(f"{self.name}: the day context of {ctx.label} carries no true demand; the method is "
+                             f"clairvoyant and must be given it")
+        super().reset(ctx)
+        true = torch.as_tensor(np.asarray(ctx.demand, dtype=np.float32), device=self.device)
+        self.future = true.reshape(true.shape[0], -1)  # (T, G)
+        self.t = 0
+
+    def _scorer(self, obs, demand, fleet):
+        horizon, last = self.settings.planner.horizon, self.future.shape[0] - 1
+        idx = torch.clamp(torch.arange(self.t + 1, self.t + 1 + horizon, device=self.device), max=last)
+        self.t += 1
+        maps = self.future[idx]
+        return self._override_scorer(demand, fleet, maps), maps[0]
+
+
+class DSWMController(PlanningController):
+    """Decision-time planner over a learned world model (see module docstring)."""
+
+    learns = True
+    shares_training = True
+
+    def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: DSWMSettings):
+        super().__init__(name=name, seed=seed, device=device, options=options)
+        self.model: WorldModel | None = None
 
     @classmethod
     def training_settings(cls, options: DSWMSettings) -> DSWMSettings:
-        """Everything but the planner: ``dswm_wo_unc`` (a planner override only) trains what ``dswm`` trains;
-        ``dswm_wo_dec`` (a world-model override) does not."""
+        """Everything but the planner: methods that differ in their planner only (``dswm_wo_unc``, ``dswm_plus``)
+        train what ``dswm`` trains; ``dswm_wo_dec`` (a world-model override) does not."""
         return dataclasses.replace(options, planner=None)
 
     def settings_hash(self) -> str:
@@ -146,8 +262,8 @@ class DSWMController(Controller):
 
     def load(self, path) -> None:
         blob = torch.load(path, map_location=self.device, weights_only=False)
-        if blob.get("method") not in METHODS:
-            raise ValueError(f"{path}: not a DSWM model file (method {blob.get('method')!r})")
+        if not isinstance(blob, dict) or "model" not in blob or "grid" not in blob:
+            raise ValueError(f"{path}: not a DSWM model file (expected the keys model, grid, scenario)")
         self.model = self._build_model(Grid(**blob["grid"]), blob["scenario"])
         self.model.load_state_dict(blob["model"])
         self.model.eval()
@@ -156,8 +272,6 @@ class DSWMController(Controller):
     def reset(self, ctx: DayContext) -> None:
         if self.model is None:
             raise RuntimeError(f"{self.name}: reset() before fit() or load()")
-        if self.settings.planner is None:
-            raise RuntimeError(f"{self.name}: built with training settings only (no planner); it cannot act")
         g = ctx.grid
         if (g.rows, g.cols) != (self.model.rows, self.model.cols):
             raise ValueError(f"{self.name}: model trained on a {self.model.rows}x{self.model.cols} grid, "
@@ -165,52 +279,30 @@ class DSWMController(Controller):
         if ctx.scenario.hash() != self.scenario.hash():
             raise ValueError(f"{self.name}: model trained under scenario hash {self.scenario.hash()}, day "
                              f"{ctx.label} of {ctx.dataset} is evaluated under {ctx.scenario.hash()}; retrain it")
-        self.ctx, self.geom = ctx, ctx.geometry
-        self.cells = torch.as_tensor(ctx.cells, dtype=torch.float32, device=self.device)
-        k = self.scenario.n_uavs
+        self._start_day(ctx, self.grid, self.scenario)
         self.latent = self.model.rssm.initial(1, device=self.device)
-        self.last_action = torch.zeros(1, k, 3, device=self.device)
+        self.last_action = torch.zeros(1, self.scenario.n_uavs, 3, device=self.device)
+
+    def _scorer(self, obs, demand, fleet):
+        """Filter o_t into the posterior; score on the model's anchored ensemble. The first imagined map is the
+        anchored prior mean after the warm-start mean's first action (only computed for a proposal)."""
         cfg = self.settings.planner
-        self.planner = AnchoredCEMPlanner(cfg=cfg, n_uavs=k, device=self.device, seed=self.seed)
-        self.planner.reset(ctx.day)
-        self.proposal = None
-        if cfg.proposal == "bcd":
-            self.proposal = BCDProposal(cfg.proposal_search())
-            self.proposal.reset(ctx)
+        fleet_obs = torch.as_tensor(np.asarray(obs["fleet"]), dtype=torch.float32, device=self.device)
+        time_obs = torch.as_tensor(np.asarray(obs["time"]), dtype=torch.float32, device=self.device)
+        self.latent = self.model.filter_step(self.latent, self.last_action, demand[None], fleet_obs[None],
+                                             time_obs[None])
+        x_now = demand[-1].reshape(-1)
+        scorer = ImaginationScorer(model=self.model, latent=self.latent, fleet=fleet, x_now=x_now, geom=self.geom,
+                                   scenario=self.scenario, params=self.params, cells=self.cells, gamma=cfg.gamma,
+                                   rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
+                                   compile=cfg.compile)
+        first_map = None
+        if self.proposal is not None:
+            mean0 = self.planner.warm_mean()[0]
+            prior = self.model.rssm.img_step(self.latent, mean0.reshape(1, -1), sample=False)
+            x_next, _ = anchor(x_now, self.model.demand_members(self.model.rssm.feat(prior)), cfg.rho)
+            first_map = x_next[0]
+        return scorer, first_map
 
-    def _proposals(self, obs: Mapping[str, Any], x_now: torch.Tensor) -> torch.Tensor | None:
-        """(M, H, K, 3) seed sequences: the BCD move on the anchored imagined next map, then hold / then the
-        previous plan's continuation."""
-        if self.proposal is None:
-            return None
-        cfg, planner = self.settings.planner, self.planner
-        mean0 = planner.warm_mean()[0]
-        prior = self.model.rssm.img_step(self.latent, mean0.reshape(1, -1), sample=False)
-        x_next, _ = anchor(x_now, self.model.demand_members(self.model.rssm.feat(prior)), cfg.rho)
-        first = self.proposal(obs, x_next[0]).to(self.device)
-        hold = torch.zeros(cfg.horizon, self.scenario.n_uavs, 3, device=self.device)
-        seqs = [hold.clone(), planner.warm_best() if planner.warm_best() is not None else hold.clone()]
-        for q in seqs:
-            q[0] = first
-        return torch.stack(seqs)
-
-    def act(self, obs: Mapping[str, Any]) -> np.ndarray:
-        t0 = time.perf_counter()
-        dev, cfg = self.device, self.settings.planner
-        demand = torch.as_tensor(np.asarray(obs["demand"]), dtype=torch.float32, device=dev)
-        fleet_obs = torch.as_tensor(np.asarray(obs["fleet"]), dtype=torch.float32, device=dev)
-        time_obs = torch.as_tensor(np.asarray(obs["time"]), dtype=torch.float32, device=dev)
-        with torch.inference_mode():
-            self.latent = self.model.filter_step(self.latent, self.last_action, demand[None], fleet_obs[None],
-                                                 time_obs[None])
-            fleet = fleet_state_from_obs(obs["fleet"], self.grid, self.scenario)
-            fleet = type(fleet)(*(t.to(dev) for t in fleet))
-            scorer = ImaginationScorer(model=self.model, latent=self.latent, fleet=fleet,
-                                       x_now=demand[-1].reshape(-1), geom=self.geom, scenario=self.scenario,
-                                       params=self.params, cells=self.cells, gamma=cfg.gamma, rho=cfg.rho,
-                                       lambda_u=cfg.lambda_u, continuation=cfg.continuation,
-                                       compile=cfg.compile)
-            action, _ = self.planner.plan(scorer, self._proposals(obs, demand[-1].reshape(-1)))
+    def _acted(self, action: torch.Tensor) -> None:
         self.last_action = action.unsqueeze(0)
-        self.plan_ms.append(1000.0 * (time.perf_counter() - t0))
-        return action.cpu().numpy().astype(np.float32)

@@ -6,17 +6,25 @@ Two parts:
   candidates in one tensor pass per imagined step: RSSM prior rollout, demand ensemble anchored on the
   observed map (rho), fleet positions and batteries propagated by ``dswm.sim.fleet.fleet_step`` (the environment's
   own kinematics and battery rules), served ratio by the world model's service head (``dswm.sim.physics``).
-  With ``demand_override`` the true future maps replace the model's (no anchoring, no uncertainty), so the
-  score is exactly the discounted SR the environment would realize.
-``AnchoredCEMPlanner`` keeps the warm start (previous slot's mean, shifted by one step) between slots.
+  With ``demand_override`` given maps replace the model's (no anchoring, no uncertainty): the true future maps
+  (the perfect-forecast planner) or the current map held constant (the persistence probe).
+``AnchoredCEMPlanner`` runs one slot's CEM and keeps what the next slot starts from.
 
-Design choices beyond Algorithm 1 (config.yaml ``dswm.planner`` gives the evidence, from training days):
+With ``warm_start: false``, ``carry_best: false``, ``continuation: hold``, ``proposal: none`` and
+``sigma0_later: null`` (config.yaml ``dswm.planner``, the method ``dswm``) this is Algorithm 1 as written: every
+slot starts from mean 0 and std sigma0, every iteration samples its whole population from the refitted Gaussian,
+imagined steps take the sampled actions, and the first action of the best sequence sampled is executed.
+The project's planner, DSWM+ (config.yaml ``dswm.methods.dswm_plus``), adds choices beyond Algorithm 1, each with evidence from
+training days in config.yaml:
 - the first step and the later steps have their own initial std (``sigma0``, ``sigma0_later``), so the noise of
   the continuation does not decide which executed action wins;
+- ``warm_start``/``carry_best``: the previous slot's mean, shifted, is the sampling mean, and the best sequences
+  (the previous slot's and the best so far) re-enter the population;
 - ``continuation="lloyd"``: later imagined steps add their sampled move to a Lloyd step, so imagined UAVs keep
   repositioning (e.g. fly back to demand after charging) instead of freezing;
 - the population can be seeded with proposals (``AnchoredCEMPlanner.plan(proposals=...)``); the controller
-  passes a block-coordinate-descent move on the anchored imagined next map (``dswm.methods.dswm.agent.BCDProposal``).
+  passes the project's one BCD search (config.yaml ``search``) on the first imagined map
+  (``dswm.methods.dswm.agent.BCDProposal``).
 """
 from __future__ import annotations
 
@@ -49,11 +57,11 @@ class PlannerConfig:
     iterations: int
     """I, CEM iterations per slot."""
     sigma0: float
-    """Initial sampling std of the first step's action coordinates."""
-    sigma0_later: float
-    """Initial sampling std of the later steps (the continuation after the executed action)."""
+    """Initial sampling std of the first step's action coordinates (Algorithm 1: of every step)."""
+    sigma0_later: float | None
+    """Initial sampling std of the later steps; None: ``sigma0`` (Algorithm 1)."""
     min_std: float
-    """Floor of the refitted std (keeps exploring within a slot)."""
+    """Floor of the refitted std (0: none, as in Algorithm 1)."""
     gamma: float
     """Planner discount."""
     rho: float
@@ -62,25 +70,22 @@ class PlannerConfig:
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
     warm_start: bool
     """Start from the previous slot's mean shifted by one step (else from 0 = hold, proportional split)."""
+    carry_best: bool
+    """Re-enter the best sequence so far into every iteration's population (and the previous slot's best, shifted,
+    with ``warm_start``); off in Algorithm 1, where every iteration samples its whole population."""
     continuation: Literal["hold", "lloyd"]
     """"hold" or "lloyd": how imagined steps after the first act (see ``ImaginationScorer``)."""
     proposal: Literal["none", "bcd"]
-    """"none" or "bcd": seed the population with a block-coordinate-descent move on the anchored map."""
-    proposal_sweeps: int
-    """BCD passes over the UAVs of the proposal."""
-    proposal_lattice: int
-    """Points per axis of the proposal's displacement lattice (odd)."""
-    proposal_refine: int
-    """Rounds of half-spacing refinement of each UAV's lattice point in the proposal."""
-    proposal_bw_logits: tuple[float, ...]
-    """Bandwidth logits the proposal searches per UAV (must include 0)."""
+    """"none" or "bcd": seed the population with the shared BCD ``search`` on the first imagined map."""
+    search: SearchSettings
+    """The project's one BCD search (config.yaml ``search``), run by the "bcd" proposal."""
     compile: bool
     """Run the imagined steps compiled by ``torch.compile`` (``ImaginationScorer``)."""
 
-    def proposal_search(self) -> SearchSettings:
-        """The strength of the "bcd" proposal's search (``dswm.methods.search``)."""
-        return SearchSettings(sweeps=self.proposal_sweeps, lattice=self.proposal_lattice,
-                              refine=self.proposal_refine, bw_logits=self.proposal_bw_logits)
+    @property
+    def later_std(self) -> float:
+        """Initial std of the steps after the first."""
+        return self.sigma0 if self.sigma0_later is None else self.sigma0_later
 
 
 class CEMResult(NamedTuple):
@@ -93,7 +98,7 @@ class CEMResult(NamedTuple):
 
 def cem(score_fn: Callable[[torch.Tensor], torch.Tensor], *, mean: torch.Tensor, std: torch.Tensor,
         n_samples: int, n_elites: int, iterations: int, min_std: float, generator: torch.Generator,
-        seeds: torch.Tensor | None = None) -> CEMResult:
+        seeds: torch.Tensor | None = None, carry_best: bool = True) -> CEMResult:
     """Maximize ``score_fn`` over sequences in [-1, 1] with the cross-entropy method.
 
     Args:
@@ -102,15 +107,16 @@ def cem(score_fn: Callable[[torch.Tensor], torch.Tensor], *, mean: torch.Tensor,
         n_samples, n_elites, iterations, min_std: CEM settings.
         generator: random source (same seed, same plan).
         seeds: optional (M, H, *A) sequences put into the first iteration's population (M < n_samples).
+        carry_best: re-enter the best sequence so far into every later iteration's population.
     Returns:
-        CEMResult; the best sequence over all iterations (the best so far is re-entered in every iteration).
+        CEMResult; the best sequence over all iterations.
     """
     best, best_score, trace = None, -float("inf"), []
     for it in range(iterations):
         # Sample actions
         noise = torch.randn((n_samples, *mean.shape), generator=generator, device=mean.device, dtype=mean.dtype)
         cand = (mean + std * noise).clamp(-1.0, 1.0)
-        fixed = [] if best is None else [best.unsqueeze(0)]
+        fixed = [] if best is None or not carry_best else [best.unsqueeze(0)]
         if it == 0 and seeds is not None:
             fixed.append(seeds.to(cand).clamp(-1.0, 1.0))
         if fixed:
@@ -294,8 +300,9 @@ class AnchoredCEMPlanner:
         return torch.zeros((self.cfg.horizon, self.n_uavs, 3), device=self.device)
 
     def warm_best(self) -> torch.Tensor | None:
-        """(H, K, 3) the previous slot's best sequence shifted by one step, or None."""
-        if self.cfg.warm_start and self.prev_best is not None:
+        """(H, K, 3) the previous slot's best sequence shifted by one step (with ``warm_start`` and
+        ``carry_best``), or None."""
+        if self.cfg.warm_start and self.cfg.carry_best and self.prev_best is not None:
             return self._shift(self.prev_best)
         return None
 
@@ -319,10 +326,10 @@ class AnchoredCEMPlanner:
             seeds.append(proposals)
         if self.warm_best() is not None:
             seeds.append(self.warm_best().unsqueeze(0))
-        std = torch.full(shape, cfg.sigma0_later, device=self.device)
+        std = torch.full(shape, cfg.later_std, device=self.device)
         std[0] = cfg.sigma0
         res = cem(score_fn, mean=mean, std=std, n_samples=cfg.n_samples, n_elites=cfg.n_elites,
                   iterations=cfg.iterations, min_std=cfg.min_std, generator=self.generator,
-                  seeds=torch.cat(seeds) if seeds else None)
+                  seeds=torch.cat(seeds) if seeds else None, carry_best=cfg.carry_best)
         self.prev_mean, self.prev_best = res.mean, res.best
         return res.best[0], res

@@ -1,8 +1,10 @@
 """DSWM's typed settings: config.yaml's ``dswm`` section resolved for one method under one profile.
 
-``dswm``, ``dswm_wo_unc`` and ``dswm_wo_dec`` are configurations of the same code: each method's overrides
+``dswm`` (Algorithm 1), its ablations ``dswm_wo_unc`` and ``dswm_wo_dec``, ``dswm_plus`` and the planners that share
+DSWM+'s settings (``dswm_plus_persist``, ``perfect``) are configurations of the same code: each method's overrides
 (``dswm.methods.<method>``) and the profile's planner reductions (``dswm.budgets.<profile>.planner``) are
-merged over the base sections, and the result is built by the project's one typed builder.
+merged over the base sections, and the result is built by the project's one typed builder. The planner's BCD
+proposal runs the project's one search (config.yaml ``search``), passed in whole.
 """
 from __future__ import annotations
 
@@ -11,11 +13,9 @@ from typing import Any, Mapping
 
 from dswm.config import ConfigError, build, merge
 from dswm.methods.dswm.planner import PlannerConfig
+from dswm.methods.search import SearchSettings
 from dswm.methods.dswm.training import TrainConfig
 from dswm.methods.dswm.world_model import WorldModelConfig
-
-METHODS = ("dswm", "dswm_wo_unc", "dswm_wo_dec")
-
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DSWMSettings:
@@ -34,8 +34,12 @@ class DSWMSettings:
     """The decision-time planner; None in the part a train job receives (training does not plan)."""
 
 
-def resolve(dswm: Mapping[str, Any], *, method: str, profile: str) -> DSWMSettings:
+def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mapping[str, Any]) -> DSWMSettings:
     """Resolve config.yaml's ``dswm`` section for ``method`` under ``profile``.
+
+    Args:
+        dswm: the ``dswm`` section; method: a name under ``dswm.methods``; profile: the budget profile;
+        search: config.yaml's ``search`` section (the project's one BCD search).
 
     Raises:
         ConfigError: the method or profile has no entry, a merged section has an unknown, missing or mistyped
@@ -50,7 +54,7 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str) -> DSWMSettin
     over = dswm["methods"].get(method) or {}
     budget = budgets[profile]
     planner = build(PlannerConfig, merge(merge(dswm["planner"], budget.get("planner")), over.get("planner")),
-                    "dswm.planner")
+                    "dswm.planner", search=build(SearchSettings, search, "search"))
     if not 1 <= planner.n_elites <= planner.n_samples:
         raise ConfigError(f"config.yaml: method {method!r}: key 'dswm.planner.n_elites' must lie in [1, n_samples] "
                           f"(after the 'dswm.budgets.{profile}.planner' and 'dswm.methods.{method}.planner' "

@@ -1,0 +1,20 @@
+# Settings the paper leaves open, chosen on the TRAINING days of one dataset (never on test days): the shared
+# BCD search's strength and the planner's gamma and sigma0. Not part of `tables`: config.yaml keeps the values.
+
+
+rule select:
+    input:
+        tensor=expand(rules.prepare.output.tensor, dataset=SETTINGS.selection.dataset),
+        meta=expand(rules.prepare.output.meta, dataset=SETTINGS.selection.dataset),
+    output:
+        report="results/selection/selection.json",
+    params:
+        settings=S.param(S.select_slice(SETTINGS)),
+        display=S.Untracked(DISPLAY),
+    log:
+        "logs/select.log",
+    benchmark:
+        "results/benchmarks/select.tsv"
+    threads: 1
+    script:
+        "../scripts/select.py"
