@@ -156,7 +156,7 @@ def test_raw_source_without_its_files_is_refused(config, tmp_path):
      ["profiles.demo.seeds.shanghai", "non-empty list"]),
     (lambda c: c["scenario"].update(obs_window=144),                    # the scenario's cross-key checks
      ["scenario.slots_per_day", "more than obs_window"]),
-    (lambda c: c["dswm"]["budgets"]["demo"]["planner"].update(n_elites=65),   # the merged DSWM planner
+    (lambda c: c["dswm"]["budgets"]["demo"]["planner"].update(n_samples=64, n_elites=65),  # the merged planner
      ["method 'dswm'", "dswm.planner.n_elites", "dswm.budgets.demo.planner", "n_elites=65, n_samples=64"]),
     (lambda c: (c["profiles"]["demo"].update(datasets=["milan", "yjmob"]),   # Table III of a dataset not run
                 c["tables"].update(main_dataset="shanghai")),
