@@ -27,9 +27,9 @@ from dswm.methods import registry
 from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
-from dswm.protocol import calibration, evaluation, tables
+from dswm.protocol import calibration, evaluation, selection, tables
 from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, MethodSettings,
-                           Runtime)
+                           Runtime, SelectionSettings)
 from dswm.sim.core import FleetCore, core_from_tensor
 from dswm.sim.scenario import Scenario
 from prep.atomic import save_npz, write_json
@@ -261,9 +261,6 @@ def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Pa
         display: how the job reports progress.
         run_dir: where the selection's world model writes its checkpoint.
     """
-    from dswm.protocol import selection
-    from dswm.settings import SelectionSettings
-
     ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
     sel = build(SelectionSettings, job["selection"], "selection")
     tensor = _load_tensor(tensor_dir)

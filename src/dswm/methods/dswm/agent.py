@@ -146,13 +146,15 @@ class PlanningController(Controller):
     def _acted(self, action: torch.Tensor) -> None:
         """Hook: the action (K, 3) just chosen."""
 
-    def _override_scorer(self, demand: torch.Tensor, fleet, maps: torch.Tensor) -> ImaginationScorer:
-        """A scorer on given maps (H, G) instead of the model's."""
+    def _imagination(self, demand: torch.Tensor, fleet, *, model=None, latent=None,
+                     maps: torch.Tensor | None = None) -> ImaginationScorer:
+        """The planner's scorer of this slot: on the world model's anchored ensemble (``model``, ``latent``) or
+        on given maps (H, G) instead (``maps``)."""
         cfg = self.settings.planner
-        return ImaginationScorer(model=None, latent=None, fleet=fleet, x_now=demand[-1].reshape(-1), geom=self.geom,
-                                 scenario=self.scenario, params=self.params, cells=self.cells, gamma=cfg.gamma,
-                                 rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
-                                 compile=cfg.compile, demand_override=maps)
+        return ImaginationScorer(model=model, latent=latent, fleet=fleet, x_now=demand[-1].reshape(-1),
+                                 geom=self.geom, scenario=self.scenario, params=self.params, cells=self.cells,
+                                 gamma=cfg.gamma, rho=cfg.rho, lambda_u=cfg.lambda_u,
+                                 continuation=cfg.continuation, compile=cfg.compile, demand_override=maps)
 
 
 class PersistenceController(PlanningController):
@@ -170,7 +172,7 @@ class PersistenceController(PlanningController):
     def _scorer(self, obs, demand, fleet):
         x_now = demand[-1].reshape(-1)
         maps = x_now.expand(self.settings.planner.horizon, -1)
-        return self._override_scorer(demand, fleet, maps), x_now
+        return self._imagination(demand, fleet, maps=maps), x_now
 
 
 class PerfectForecastController(PersistenceController):
@@ -193,7 +195,7 @@ class PerfectForecastController(PersistenceController):
         idx = torch.clamp(torch.arange(self.t + 1, self.t + 1 + horizon, device=self.device), max=last)
         self.t += 1
         maps = self.future[idx]
-        return self._override_scorer(demand, fleet, maps), maps[0]
+        return self._imagination(demand, fleet, maps=maps), maps[0]
 
 
 class DSWMController(PlanningController):
@@ -262,7 +264,7 @@ class DSWMController(PlanningController):
 
     def load(self, path) -> None:
         blob = torch.load(path, map_location=self.device, weights_only=False)
-        if not isinstance(blob, dict) or "model" not in blob or "grid" not in blob:
+        if not isinstance(blob, dict) or any(k not in blob for k in ("model", "grid", "scenario")):
             raise ValueError(f"{path}: not a DSWM model file (expected the keys model, grid, scenario)")
         self.model = self._build_model(Grid(**blob["grid"]), blob["scenario"])
         self.model.load_state_dict(blob["model"])
@@ -292,10 +294,7 @@ class DSWMController(PlanningController):
         self.latent = self.model.filter_step(self.latent, self.last_action, demand[None], fleet_obs[None],
                                              time_obs[None])
         x_now = demand[-1].reshape(-1)
-        scorer = ImaginationScorer(model=self.model, latent=self.latent, fleet=fleet, x_now=x_now, geom=self.geom,
-                                   scenario=self.scenario, params=self.params, cells=self.cells, gamma=cfg.gamma,
-                                   rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
-                                   compile=cfg.compile)
+        scorer = self._imagination(demand, fleet, model=self.model, latent=self.latent)
         first_map = None
         if self.proposal is not None:
             mean0 = self.planner.warm_mean()[0]
