@@ -94,6 +94,60 @@ def test_a_failing_job_ends_failed_and_a_killed_one_is_marked_killed(store, tmp_
     assert client.get_run(run.run_id).info.status == "FAILED"  # failed runs are kept as history
 
 
+def test_an_interruption_while_the_run_is_set_up_ends_it_failed(store, tmp_path, monkeypatch):
+    """A Ctrl-C while the params are logged (before the job body) leaves no run RUNNING."""
+    cfg, info, client = store
+    real = MlflowClient.log_batch
+
+    def interrupted(self, run_id, metrics=(), params=(), tags=()):
+        if params:
+            raise KeyboardInterrupt
+        return real(self, run_id, metrics=metrics, params=params, tags=tags)
+
+    monkeypatch.setattr(MlflowClient, "log_batch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with open_job(cfg, tmp_path):
+            raise AssertionError("the body must not run")
+    (only,) = runs(client, info)
+    assert only.info.status == "FAILED"
+
+
+def test_a_sigterm_as_the_run_is_created_ends_it_failed(store, tmp_path, monkeypatch):
+    """SIGTERM delivered right after MLflow created the run (before the job holds its id) still ends it FAILED."""
+    import os
+    import signal
+
+    cfg, info, client = store
+    real = MlflowClient.create_run
+
+    def create_then_term(self, *args, **kwargs):
+        run = real(self, *args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)  # noted, and raised once the run id is bound
+        return run
+
+    monkeypatch.setattr(MlflowClient, "create_run", create_then_term)
+    before = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
+    with pytest.raises(tracking._Terminated, match="terminated by signal 15"):
+        with open_job(cfg, tmp_path):
+            raise AssertionError("the body must not run")
+    (only,) = runs(client, info)
+    assert only.info.status == "FAILED"
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before  # handlers restored
+
+
+def test_a_workflow_start_closes_runs_a_sigkill_left_running(store, tmp_path):
+    cfg, info, client = store
+    exp = info["experiment_id"]
+    orphans = [client.create_run(exp, tags={"job_key": f"train/milan/dswm/seed{s}"}) for s in (0, 1)]
+    with open_job(cfg, tmp_path):
+        pass
+    assert tracking.close_orphans(store=cfg["store"], experiment=cfg["experiment"]) == 2
+    assert [client.get_run(r.info.run_id).info.status for r in orphans] == ["KILLED", "KILLED"]
+    assert [r.info.status for r in runs(client, info, "FINISHED")] == ["FINISHED"]  # a finished run is kept
+    assert tracking.close_orphans(store=cfg["store"], experiment=cfg["experiment"]) == 0
+    assert tracking.close_orphans(store=str(tmp_path / "absent.db"), experiment="x") == 0
+
+
 def test_missing_store_is_reported_with_the_rule_that_creates_it(tmp_path):
     cfg = {"store": str(tmp_path / "none.db"), "artifacts": str(tmp_path), "experiment": "x", "batch_size": 10}
     with pytest.raises(FileNotFoundError, match="mlflow_init"):

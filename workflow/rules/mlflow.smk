@@ -10,3 +10,14 @@ rule mlflow_init:
         "logs/mlflow_init.log",
     script:
         "../scripts/mlflow_init.py"
+
+
+# A run still RUNNING when a workflow starts belongs to a job killed with SIGKILL (Snakemake's lock keeps two
+# workflows out of one working directory): it is ended KILLED here, so the store never shows a run as live that
+# nothing is running. Runs of interrupted jobs that got SIGTERM or SIGINT are ended FAILED by the job itself.
+onstart:
+    from dswm.pipeline.tracking import close_orphans
+
+    _closed = close_orphans(store=SETTINGS.mlflow.store, experiment=SETTINGS.mlflow.experiment)
+    if _closed:
+        print(f"MLflow: {_closed} run(s) left RUNNING by an earlier, killed workflow are now KILLED", file=sys.stderr)

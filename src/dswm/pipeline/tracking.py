@@ -177,30 +177,68 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     tags = {"job_key": key, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
             "profile": settings["profile"], "git_commit": git_commit(repo), "config_hash": config_hash,
             "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
-    run = _retry(client.create_run, exp.experiment_id, tags=tags)
-    job = JobRun(client=client, run_id=run.info.run_id, batch_size=int(mlflow_cfg["batch_size"]))
-    params = [Param(k, v) for k, v in sorted(flatten(settings).items())]
-    for i in range(0, len(params), MAX_PARAMS_PER_BATCH):
-        _retry(client.log_batch, job.run_id, params=params[i: i + MAX_PARAMS_PER_BATCH])
 
-    def _on_term(signum, frame):
+    # The handlers are in place before the run exists. While the run is created and its id bound, a SIGTERM or
+    # SIGINT is only noted, and raised once the job holds the id, inside the `try` below, which ends the run
+    # FAILED: no window is left in which a run exists that nothing will close (SIGKILL aside: the next run of the
+    # job key, or the next workflow start, closes such a run KILLED; see close_orphans).
+    state = {"defer": True, "pending": None}
+
+    def _on_signal(signum, frame):
+        if state["defer"]:
+            state["pending"] = signum
+            return
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
         raise _Terminated(f"terminated by signal {signum}")
 
     main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_term) if main else None
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
+    job: JobRun | None = None
     try:
+        run = _retry(client.create_run, exp.experiment_id, tags=tags)
+        job = JobRun(client=client, run_id=run.info.run_id, batch_size=int(mlflow_cfg["batch_size"]))
+        state["defer"] = False
+        if main:
+            signal.signal(signal.SIGINT, previous.pop(signal.SIGINT))
+        if state["pending"] is not None:
+            _on_signal(state["pending"], None)
+        params = [Param(k, v) for k, v in sorted(flatten(settings).items())]
+        for i in range(0, len(params), MAX_PARAMS_PER_BATCH):
+            _retry(client.log_batch, job.run_id, params=params[i: i + MAX_PARAMS_PER_BATCH])
         yield job
         job.flush()
     except BaseException:
-        with contextlib.suppress(Exception):
-            job.flush()
-        _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FAILED))
+        if job is not None:
+            with contextlib.suppress(Exception):
+                job.flush()
+            _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FAILED))
         raise
     finally:
-        if main:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FINISHED))
     for old in _runs_of(client, exp.experiment_id, key, "FINISHED"):
         if old.info.run_id != job.run_id:
             _retry(client.delete_run, old.info.run_id)
 
+
+
+def close_orphans(*, store: str | Path, experiment: str) -> int:
+    """End every run of the experiment still marked RUNNING as KILLED; returns how many.
+
+    Called when a workflow starts (Snakefile `onstart`): Snakemake's lock guarantees no job of this working
+    directory runs then, so a RUNNING run can only be one whose job was killed with SIGKILL (or lost its machine).
+    Nothing happens when the store does not exist yet.
+    """
+    if not Path(store).exists():
+        return 0
+    client = MlflowClient(tracking_uri=tracking_uri(store))
+    exp = _retry(client.get_experiment_by_name, experiment)
+    if exp is None:
+        return 0
+    query = "attributes.status = 'RUNNING'"
+    runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=10000)
+    for run in runs:
+        _retry(client.set_terminated, run.info.run_id, RunStatus.to_string(RunStatus.KILLED))
+    return len(runs)
