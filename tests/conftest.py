@@ -25,8 +25,8 @@ def one_thread():
 
 @pytest.fixture(scope="session")
 def scenario():
-    """The scenario of config.yaml."""
-    return load_scenario(ROOT / "config.yaml")
+    """The scenario of config.yaml (u: the demo calibration, DEMO_INTENSITY, where config.yaml says calibrate)."""
+    return load_scenario(ROOT / "config.yaml", standin=True)
 
 
 @pytest.fixture

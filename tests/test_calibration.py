@@ -1,7 +1,8 @@
 """Calibration of the demand intensity: the bisection lands on the target, recomputed with the physics alone.
 
-(That config.yaml's `scenario.demand_intensity` is the value the `calibrate` rule prints for the Milan demo
-data is checked in test_integration.py, which prepares the Milan tensor.)
+(That every result of a run with `scenario.demand_intensity: calibrate` used the `calibrate` rule's value, and
+that DEMO_INTENSITY is that value for the Milan demo data, is checked in test_integration.py, which prepares the
+Milan tensor; reading the record: test_intensity.py.)
 """
 import dataclasses
 

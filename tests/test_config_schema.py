@@ -154,8 +154,8 @@ def test_raw_source_without_its_files_is_refused(config, tmp_path):
 @pytest.mark.parametrize("mutate, words", [
     (lambda c: c["profiles"]["demo"]["seeds"].update(shanghai=[]),       # the schema
      ["profiles.demo.seeds.shanghai", "non-empty list"]),
-    (lambda c: c["scenario"].update(obs_window=144),                    # the scenario's cross-key checks
-     ["scenario.slots_per_day", "more than obs_window"]),
+    (lambda c: c["scenario"].update(obs_window=500),                    # the observation window within a day
+     ["key 'scenario.obs_window' must be an integer in [1, 143]", "found 500"]),
     (lambda c: c["dswm"]["budgets"]["demo"]["planner"].update(n_samples=64, n_elites=65),  # the merged planner
      ["method 'dswm'", "dswm.planner.n_elites", "dswm.budgets.demo.planner", "n_elites=65, n_samples=64"]),
     (lambda c: (c["profiles"]["demo"].update(datasets=["milan", "yjmob"]),   # Table III of a dataset not run

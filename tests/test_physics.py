@@ -12,7 +12,7 @@ from dswm.sim.scenario import load_scenario
 
 from conftest import ROOT
 
-BASE = ServiceParams.from_scenario(load_scenario(ROOT / "config.yaml"))  # the constants of docs/PROTOCOL.md §1
+BASE = ServiceParams.from_scenario(load_scenario(ROOT / "config.yaml", standin=True))  # docs/PROTOCOL.md §1
 
 C0 = 299_792_458.0
 

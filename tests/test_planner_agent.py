@@ -35,8 +35,9 @@ def raw():
 
 
 @pytest.fixture(scope="module")
-def core(resolved):
-    scenario = resolved.scenario
+def core(resolved, scenario):
+    assert dataclasses.replace(scenario, demand_intensity=0.0) == \
+        dataclasses.replace(resolved.scenario, demand_intensity=0.0)  # config.yaml's, u a number (conftest)
     grid = Grid(rows=9, cols=9, cell_m=500.0)
     demand = synthetic_demand(days=3, rows=9, cols=9, seed=4) + 0.01
     c = FleetCore(demand=demand, grid=grid, scenario=scenario, dataset="agent-test", day_labels=["a", "b", "c"],

@@ -24,8 +24,8 @@ def demo_core(tmp_path_factory):
     generate_demo(dataset_of(config, "milan"), "milan", tmp / "raw")
     prepare_from_config(config, "milan", raw=[str(tmp / "raw")], out_dir=tmp / "data", reference_meta=None)
     tensor = load(tmp / "data")
-    from dswm.sim.scenario import Scenario
-    scenario = Scenario.from_dict(config["scenario"])
+    from dswm.sim.scenario import load_scenario
+    scenario = load_scenario(ROOT / "config.yaml", standin=True)  # u a number where config.yaml says calibrate
     core = core_from_tensor(tensor, scenario, tensor.train_days[:2])
     return core, config
 

@@ -29,6 +29,10 @@ TRAINED = SETTINGS.trained()
 TRAINED_PATTERN = "|".join(TRAINED) or "(?!)"
 """The `train` rule's method constraint: a model.pt of a method that shares a training cannot be requested."""
 DISPLAY = SETTINGS.display
+INTENSITY = S.intensity_inputs(SETTINGS)
+"""`{"intensity": <the calibrate rule's record>}` when scenario.demand_intensity is `calibrate`, else `{}`: an input
+of every job that reads u (select, train, evaluate, audit_report), which takes u from it. A new record reruns
+them (the record is an input; their settings slices hold `calibrate`, not the number)."""
 
 
 wildcard_constraints:

@@ -6,6 +6,7 @@ rule select:
     input:
         tensor=expand(rules.prepare.output.tensor, dataset=SETTINGS.selection.dataset),
         meta=expand(rules.prepare.output.meta, dataset=SETTINGS.selection.dataset),
+        **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
     output:
         report="results/selection/selection.json",
     params:

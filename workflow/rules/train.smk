@@ -7,6 +7,7 @@ rule train:
         tensor=rules.prepare.output.tensor,
         meta=rules.prepare.output.meta,
         mlflow=rules.mlflow_init.output.marker,
+        **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
     output:
         model="results/{dataset}/{method}/seed{seed}/model.pt",
         manifest="results/{dataset}/{method}/seed{seed}/train_manifest.json",

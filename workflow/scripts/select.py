@@ -10,7 +10,8 @@ from dswm.settings import read_param
 out = Path(snakemake.output.report)  # noqa: F821
 report = select_job(job=read_param(snakemake.params.settings), display=snakemake.params.display.value,  # noqa: F821
                     tensor_dir=Path(snakemake.input.tensor[0]).parent, out=out,  # noqa: F821
-                    run_dir=out.parent / "model")
+                    run_dir=out.parent / "model",
+                    intensity=snakemake.input.get("intensity"))  # noqa: F821 (the calibrate rule's record, or None)
 lines = [f"{r['search']}: served ratio {r['sr_mean']:.4f}, {r['ms_per_slot']:.1f} ms per day-slot"
          for r in report["search"]["candidates"]]
 lines += [f"{report['planner']['method']} gamma={r['gamma']} sigma0={r['sigma0']}: served ratio {r['sr_mean']:.4f}"

@@ -11,4 +11,5 @@ w, p = snakemake.wildcards, snakemake.params  # noqa: F821
 train_job(job=read_param(p.settings), evaluated_as=p.evaluated_as.value,
           tensor_dir=Path(snakemake.input.tensor).parent, dataset=w.dataset, method=w.method,  # noqa: F821
           seed=int(w.seed), model_out=snakemake.output.model, manifest_out=snakemake.output.manifest,  # noqa: F821
-          run_dir=p.run_dir, repo=snakemake.scriptdir + "/../..")  # noqa: F821
+          run_dir=p.run_dir, repo=snakemake.scriptdir + "/../..",  # noqa: F821
+          intensity=snakemake.input.get("intensity"))  # noqa: F821 (the calibrate rule's record, or None)

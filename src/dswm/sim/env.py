@@ -20,12 +20,13 @@ ENV_ID = "dswm/UAVFleet-v0"
 
 
 def default_scenario() -> Scenario:
-    """The scenario of the repository's config.yaml (for environments built without one)."""
+    """The scenario of the repository's config.yaml (for environments built without one); u is
+    ``dswm.sim.scenario.DEMO_INTENSITY`` when config.yaml says ``calibrate``."""
     from pathlib import Path
 
     from dswm.sim.scenario import load_scenario
 
-    return load_scenario(Path(__file__).resolve().parents[3] / "config.yaml")
+    return load_scenario(Path(__file__).resolve().parents[3] / "config.yaml", standin=True)
 
 
 def synthetic_demand(*, days: int = 2, rows: int = 10, cols: int = 10, slots: int = 144,

@@ -60,7 +60,7 @@ class ServiceParams:
             tx_power_w=scenario.tx_power_w,
             noise_psd_w_per_hz=scenario.noise_psd_w_per_hz,
             r0_bps=scenario.r0_bps,
-            demand_intensity=scenario.demand_intensity,
+            demand_intensity=scenario.intensity,
             u_peak=scenario.u_peak,
             los_a=scenario.channel.a,
             los_b=scenario.channel.b,

@@ -6,10 +6,20 @@ missing keys and values of the wrong type stop with a message that names the key
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 from dswm.config import ConfigError, build, load_yaml, stable_hash
+
+CALIBRATE = "calibrate"
+"""``scenario.demand_intensity: calibrate``: u is the value of the calibrate rule's record, read by every job that
+needs it (``dswm.settings.calibrated_scenario``), instead of a number written in config.yaml."""
+
+DEMO_INTENSITY = 65.58
+"""The u the calibrate rule finds on the demo Milan data (docs/PROTOCOL.md §2). It stands in for ``calibrate``
+only where there is no record to read: an environment built without a scenario, tests and benchmarks
+(:func:`load_scenario` with ``standin=True``); no pipeline job uses it."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -70,7 +80,9 @@ class Scenario:
     noise_psd_log10_w_per_hz: float
     r0_bps: float
     u_peak: float
-    demand_intensity: float
+    demand_intensity: float | Literal["calibrate"]
+    """u; ``"calibrate"`` in settings that take it from the calibrate rule's record, which every job resolves to
+    the number before it simulates (:attr:`intensity`)."""
     battery_j: float
     reserve_frac: float
     recharge_slots: int
@@ -85,20 +97,48 @@ class Scenario:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], *, where: str = "scenario") -> "Scenario":
         """Build from the ``scenario`` mapping of config.yaml; raises ConfigError naming the bad key."""
-        scenario = build(cls, data, where)
+        fixed = {}
+        if isinstance(data, Mapping) and "demand_intensity" in data:  # a number, or "calibrate"
+            u = data["demand_intensity"]
+            if u != CALIBRATE and (isinstance(u, bool) or not isinstance(u, (int, float)) or not math.isfinite(u)):
+                raise ConfigError(f"config key {where}.demand_intensity: expected a positive number or "
+                                  f"{CALIBRATE!r}, found {u!r}")
+            fixed["demand_intensity"] = u if u == CALIBRATE else float(u)
+            data = {k: v for k, v in data.items() if k != "demand_intensity"}
+        scenario = build(cls, data, where, **fixed)
+        u = scenario.demand_intensity
         checks = [
             ("n_uavs", scenario.n_uavs >= 1, "at least 1"),
-            ("slots_per_day", scenario.slots_per_day > scenario.obs_window, "more than obs_window"),
+            ("obs_window", 1 <= scenario.obs_window < scenario.slots_per_day,
+             f"an integer in [1, {scenario.slots_per_day - 1}] (fewer than the {scenario.slots_per_day} slots of "
+             f"{where}.slots_per_day)"),
             ("reserve_frac", 0.0 < scenario.reserve_frac < 1.0, "in (0, 1)"),
             ("recharge_slots", scenario.recharge_slots >= 1, "at least 1"),
             ("n_stations", scenario.n_stations == 4, "4 (one per quadrant)"),
-            ("demand_intensity", scenario.demand_intensity > 0, "positive"),
+            ("demand_intensity", u == CALIBRATE or u > 0, f"a positive number or {CALIBRATE!r}"),
             ("bandwidth_hz", scenario.bandwidth_hz > 0, "positive"),
         ]
         for key, ok, expected in checks:
             if not ok:
-                raise ConfigError(f"{where}.{key}: expected {expected}, found {getattr(scenario, key)!r}")
+                raise ConfigError(f"config key {where}.{key}: expected {expected}, found {getattr(scenario, key)!r}")
         return scenario
+
+    @property
+    def calibrates(self) -> bool:
+        """True when u is taken from the calibrate rule's record (``demand_intensity: calibrate``)."""
+        return self.demand_intensity == CALIBRATE
+
+    @property
+    def intensity(self) -> float:
+        """The demand intensity u as a number.
+
+        Raises:
+            ConfigError: u is still ``"calibrate"`` (the record has not been read).
+        """
+        if self.calibrates:
+            raise ConfigError(f"scenario.demand_intensity is {CALIBRATE!r}: read u from the calibrate rule's record "
+                              f"first (dswm.settings.calibrated_scenario)")
+        return float(self.demand_intensity)
 
     @property
     def noise_psd_w_per_hz(self) -> float:
@@ -106,13 +146,23 @@ class Scenario:
         return 10.0 ** self.noise_psd_log10_w_per_hz
 
     def hash(self) -> str:
-        """Hash of every constant; recorded with each result so the audit can compare scenarios."""
+        """Hash of every constant, u as the number used; recorded with each result so the audit can compare
+        scenarios."""
+        self.intensity  # noqa: B018 - refuses a scenario whose u is still "calibrate"
         return stable_hash(self)
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """The Scenario of a config file (its ``scenario`` section)."""
+def load_scenario(path: str | Path, *, standin: bool = False) -> Scenario:
+    """The Scenario of a config file (its ``scenario`` section).
+
+    Args:
+        standin: with ``demand_intensity: calibrate``, use :data:`DEMO_INTENSITY` for u (a scenario to simulate
+            without the calibrate rule's record); otherwise u stays ``"calibrate"``.
+    """
     data = load_yaml(path)
     if "scenario" not in data:
         raise ConfigError(f"{path}: missing top-level key 'scenario'")
-    return Scenario.from_dict(data["scenario"])
+    scenario = Scenario.from_dict(data["scenario"])
+    if standin and scenario.calibrates:
+        scenario = dataclasses.replace(scenario, demand_intensity=DEMO_INTENSITY)
+    return scenario
