@@ -169,7 +169,7 @@ def test_drop_mode_drops_and_counts_out_of_range_rows(tmp_path):
     config = _config()
     config["datasets"]["milan"]["on_out_of_range"] = "drop"
     meta = prepare_from_config(config, "milan", raw=[str(raw_dir)], out_dir=tmp_path / "out", reference_meta=None)
-    assert meta["dropped"] == {"square_outside_grid": 1, "outside_segments": 2}
+    assert meta["dropped"] == {"square_outside_grid": 1, "outside_segments": 2, "duplicate_lines": 0}
     body = YJ_HEADER + "".join(f"{u},{d},{t},5,5\n" for u in range(3) for d in range(6) for t in range(48))
     bad = _yjmob(raw_dir, body + "7,1,3,201,5\n7,40,3,5,5\n7,41,3,5,5\n")
     config["datasets"]["yjmob"]["on_out_of_range"] = "drop"

@@ -130,7 +130,7 @@ def test_build_maps_square_ids_to_rows_from_the_south(tmp_path):
     assert raw.values.shape == (2, 144, 20, 20)
     assert raw.values[0, 0, 0, 0] == 1.5 and raw.values[0, 7, 19, 19] == 2 and raw.values[0, 0, 1, 19] == 3
     assert raw.values[1, 0, 1, 19] == 4 and raw.values.sum() == 10.5
-    assert raw.notes["files_skipped_outside_segments"] == 1 and raw.dropped == {}
+    assert raw.notes["files_skipped_outside_segments"] == 1 and raw.dropped == {"duplicate_lines": 0}
     assert [d.label for d in raw.days] == ["2013-11-01", "2013-11-02"] and raw.weekday == [4, 5]
 
 

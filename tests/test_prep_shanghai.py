@@ -49,7 +49,7 @@ def test_xlsx_and_csv_give_the_same_cleaned_sessions_with_counts(tmp_path):
     for path in (xlsx, csv):
         dropped, notes = {}, {}
         got = shanghai.read_raw([path], dropped=dropped, notes=notes)
-        assert dropped == {"missing_location": 1, "zero_location": 1, "end_before_start": 1}
+        assert dropped == {"missing_location": 1, "zero_location": 1, "end_before_start": 1, "duplicate_rows": 0}
         assert notes == {"crossing_midnight": 1}
         results.append(got)
     a, b = results

@@ -1,7 +1,9 @@
 """Typed, frozen configuration of the `datasets:` section of config.yaml.
 
 Every key is required (config.yaml writes every default out); an unknown or missing key is an error that
-names its dotted path. Build with `datasets_config(config["datasets"])`, or one dataset's section with
+names its dotted path. Building the section (or one dataset's) also checks each split, evaluation days and
+``allow_empty_days`` (``prep.days.check_days``), so these mistakes stop the workflow when settings are
+resolved. Build with `datasets_config(config["datasets"])`, or one dataset's section with
 `dataset_from_plain(name, section)`.
 """
 from __future__ import annotations
@@ -131,6 +133,7 @@ class MilanConfig:
     crop: FixedCrop
     split: Split
     eval_days: EvalDays
+    allow_empty_days: tuple[str, ...]  # ISO dates of training/test days that may have no record (never an eval day)
     demo: MilanDemo
 
 
@@ -148,6 +151,7 @@ class ShanghaiConfig:
     window_slots: int
     split: Split
     eval_days: EvalDays
+    allow_empty_days: tuple[str, ...]  # ISO dates of training/test days that may have no session (never an eval day)
     demo: ShanghaiDemo
 
 
@@ -172,10 +176,21 @@ class YJMobConfig:
     split: Split
     week: WeekRecovery
     eval_days: EvalDays
+    allow_empty_days: tuple[int, ...]  # day numbers d that may have no record (training days, or test days that
+    #                                    no eval rule can pick; never an eval day)
     demo: YJMobDemo
 
 
 DatasetConfig = MilanConfig | ShanghaiConfig | YJMobConfig
+
+
+def _check_days(cfg: DatasetConfig, dataset: str) -> None:
+    """The split, evaluation days and empty-day allowance of a section built from config (at parse time)."""
+    from prep.days import check_days  # prep.days imports this module
+
+    check_days(cfg, dataset)
+
+
 _CLASSES = {"milan": MilanConfig, "shanghai": ShanghaiConfig, "yjmob": YJMobConfig}
 
 
@@ -185,6 +200,10 @@ class DatasetsConfig:
     milan: MilanConfig
     shanghai: ShanghaiConfig
     yjmob: YJMobConfig
+
+    def __post_init__(self) -> None:  # built by datasets_config and by dswm.settings.resolve
+        for name in DATASETS:
+            _check_days(getattr(self, name), name)
 
 
 def datasets_config(section: dict) -> DatasetsConfig:
@@ -202,7 +221,9 @@ def dataset_from_plain(name: str, section: dict) -> DatasetConfig:
     """One dataset's typed section from its plain mapping (a job's settings slice, or config.yaml's)."""
     if name not in _CLASSES:
         raise ConfigError(f"unknown dataset {name!r}; expected one of {DATASETS}")
-    return build(_CLASSES[name], section, f"datasets.{name}")
+    cfg = build(_CLASSES[name], section, f"datasets.{name}")
+    _check_days(cfg, name)
+    return cfg
 
 
 def common_from_plain(section: dict) -> CommonPrep:

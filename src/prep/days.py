@@ -7,12 +7,16 @@ pseudo-weekend phases are recovered from TRAINING daily totals only.
 from __future__ import annotations
 
 import datetime as dt
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from dswm.config import ConfigError
 from prep.config import EvalDays, EvalRule, Split, WeekRecovery
-from prep.rawio import PrepError
+from prep.rawio import PrepError, describe_files
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,56 +32,183 @@ class Day:
         return self.key.isoformat() if isinstance(self.key, dt.date) else f"d{self.key}"
 
 
+_ISO_DATE = re.compile(r"\d{4}-\d{2}-\d{2}")
+
+
 def _parse_date(text: str, where: str) -> dt.date:
     try:
+        if not _ISO_DATE.fullmatch(str(text)):
+            raise ValueError(text)
         return dt.date.fromisoformat(str(text))
     except ValueError as exc:
-        raise PrepError(f"config key {where}: expected an ISO date YYYY-MM-DD, found {text!r}") from exc
+        raise ConfigError(f"config key {where}: expected an ISO date YYYY-MM-DD, found {text!r}") from exc
 
 
 def _parse_int(text: str, where: str) -> int:
     try:
         return int(text)
     except ValueError as exc:
-        raise PrepError(f"config key {where}: expected a day number, found {text!r}") from exc
+        raise ConfigError(f"config key {where}: expected a day number (an integer), found {text!r}") from exc
+
+
+def _shown(text: str | int) -> str:
+    """A configured day as the config holds it: a quoted ISO date, or a bare day number."""
+    return str(text) if isinstance(text, int) or str(text).isdigit() else repr(text)
+
+
+def _segments(split: Split, *, dataset: str, n_days: int | None) -> list[tuple]:
+    """[(first, last)] of the training and the test segment, checked (dates, or day numbers with `n_days`).
+
+    Raises:
+        ConfigError: naming the key (``datasets.<dataset>.split.train[1]``), the form expected and the value
+            found, for an invalid date or day number, a reversed segment, or a test segment that does not start
+            after the training segment ends.
+    """
+    bounds = []
+    for name, seg in split.segments().items():
+        key = f"datasets.{dataset}.split.{name}"
+        ends = []
+        for i, text in enumerate((seg.first, seg.last)):
+            if n_days is None:
+                ends.append(_parse_date(text, f"{key}[{i}]"))
+                continue
+            v = _parse_int(text, f"{key}[{i}]")
+            if not 0 <= v < n_days:
+                raise ConfigError(f"config key {key}[{i}]: expected a day number in 0..{n_days - 1} "
+                                  f"(datasets.{dataset}.n_days: {n_days}), found {v}")
+            ends.append(v)
+        if ends[1] < ends[0]:
+            raise ConfigError(f"config key {key}: expected [first, last] with first <= last, found "
+                              f"[{_shown(seg.first)}, {_shown(seg.last)}]")
+        bounds.append(tuple(ends))
+    if bounds[1][0] <= bounds[0][1]:
+        last = bounds[0][1]
+        raise ConfigError(f"config key datasets.{dataset}.split.test[0]: expected a day after the last training "
+                          f"day {_shown(last if isinstance(last, int) else last.isoformat())} "
+                          f"(datasets.{dataset}.split.train[1]; the test segment follows the training segment "
+                          f"without overlap), found {_shown(split.test[0])}")
+    return bounds
 
 
 def calendar_days(split: Split, *, dataset: str) -> list[Day]:
     """All tensor days: training segment then test segment (inclusive ranges of dates).
 
     Raises:
-        PrepError: a segment is empty, reversed, or the test segment does not start after training ends.
+        ConfigError: an invalid date, a reversed segment, or a test segment that does not start after training
+            ends (see `_segments`).
     """
     out: list[Day] = []
-    bounds = []
-    for name, seg in split.segments().items():
-        a = _parse_date(seg.first, f"datasets.{dataset}.split.{name}[0]")
-        b = _parse_date(seg.last, f"datasets.{dataset}.split.{name}[1]")
-        if b < a:
-            raise PrepError(f"config key datasets.{dataset}.split.{name}: last day {b} is before first day {a}")
-        bounds.append((a, b))
+    for name, (a, b) in zip(("train", "test"), _segments(split, dataset=dataset, n_days=None)):
         for k in range((b - a).days + 1):
             out.append(Day(index=len(out), key=a + dt.timedelta(days=k), split=name))
-    if bounds[1][0] <= bounds[0][1]:
-        raise PrepError(f"config key datasets.{dataset}.split: test segment must start after the training "
-                        f"segment ends (temporal split); found train {bounds[0]}, test {bounds[1]}")
     return out
 
 
 def numbered_days(split: Split, *, dataset: str, n_days: int) -> list[Day]:
     """Tensor days for a dataset with numbered days (YJMob d = 0..n_days-1)."""
     out: list[Day] = []
-    prev_last = -1
-    for name, seg in split.segments().items():
-        a = _parse_int(seg.first, f"datasets.{dataset}.split.{name}[0]")
-        b = _parse_int(seg.last, f"datasets.{dataset}.split.{name}[1]")
-        if not (0 <= a <= b < n_days) or a <= prev_last:
-            raise PrepError(f"config key datasets.{dataset}.split.{name}: expected {prev_last + 1} <= first <= "
-                            f"last <= {n_days - 1}, found [{a}, {b}]")
-        prev_last = b
+    for name, (a, b) in zip(("train", "test"), _segments(split, dataset=dataset, n_days=n_days)):
         base = len(out)
         out.extend([Day(index=base + k, key=a + k, split=name) for k in range(b - a + 1)])
     return out
+
+
+def configured_days(cfg, dataset: str) -> list[Day]:
+    """The tensor days of a dataset's typed section (dates, or YJMob's day numbers)."""
+    n_days = getattr(cfg, "n_days", None)
+    if n_days is None:
+        return calendar_days(cfg.split, dataset=dataset)
+    return numbered_days(cfg.split, dataset=dataset, n_days=n_days)
+
+
+def _allowance_key(text: str | int, where: str, numbered: bool) -> dt.date | int:
+    return _parse_int(str(text), where) if numbered else _parse_date(str(text), where)
+
+
+def allowed_empty(cfg) -> set:
+    """The day keys (dates, or day numbers) of ``allow_empty_days``, already checked by `check_days`."""
+    numbered = getattr(cfg, "n_days", None) is not None
+    return {_allowance_key(v, "allow_empty_days", numbered) for v in cfg.allow_empty_days}
+
+
+def check_days(cfg, dataset: str) -> None:
+    """Parse-time checks of a dataset's split, evaluation days and empty-day allowance.
+
+    Runs when the typed section is built (``prep.config``), so a mistake stops the workflow when settings are
+    resolved, before any job: the split (`_segments`), every ``test_positions`` position inside the test
+    segment, and ``allow_empty_days``: every entry a day of the segments and never an evaluation day (the
+    positions, or the calendar's first weekdays / weekend days; for YJMob's recovered week, any test day).
+
+    Raises:
+        ConfigError: naming the key, the form expected and the value found.
+    """
+    days = configured_days(cfg, dataset)
+    test = [d for d in days if d.split == "test"]
+    known = True  # the evaluation days follow from the config alone
+    for name in ("id", "ood"):
+        rule: EvalRule = getattr(cfg.eval_days, name)
+        if rule.rule != "test_positions":
+            known = known and isinstance(days[0].key, dt.date)  # YJMob: the week comes from the data
+            continue
+        key = f"datasets.{dataset}.eval_days.{name}.values"
+        span = f"0..{len(test) - 1} ({len(test)} days: {test[0].label}..{test[-1].label})"
+        if not rule.values:
+            raise ConfigError(f"config key {key}: expected at least one position in the test segment, {span}, "
+                              f"found []")
+        for i, v in enumerate(rule.values):
+            if not 0 <= v < len(test):
+                raise ConfigError(f"config key {key}[{i}]: expected a position in the test segment, {span}, "
+                                  f"found {v}")
+    eval_of: dict[int, str] = {}  # tensor day -> "id" / "ood", where the config alone fixes it
+    for name in ("id", "ood") if known else ():
+        rule = getattr(cfg.eval_days, name)
+        if rule.rule == "test_positions":
+            picked = [test[v].index for v in rule.values]
+        else:  # calendar weekends; too few matching days is left to pick_eval_days at preparation
+            want = rule.rule == "first_weekend"
+            picked = [d.index for d in test if (d.key.weekday() >= 5) == want][: rule.count]
+        eval_of.update({i: name for i in picked})
+    numbered = not isinstance(days[0].key, dt.date)
+    by_key = {d.key: d for d in days}
+    segs = ", ".join(f"{s[0].label}..{s[-1].label}" for s in
+                     ([d for d in days if d.split == "train"], test))
+    for i, text in enumerate(cfg.allow_empty_days):
+        key = f"datasets.{dataset}.allow_empty_days[{i}]"
+        day = by_key.get(_allowance_key(text, key, numbered))
+        if day is None:
+            raise ConfigError(f"config key {key}: expected a day of the training or test segment ({segs}), "
+                              f"found {_shown(text)}")
+        if day.index in eval_of:
+            raise ConfigError(f"config key {key}: expected a day that is not an evaluation day (an evaluation day "
+                              f"may never be empty), found {_shown(text)}, a datasets.{dataset}.eval_days."
+                              f"{eval_of[day.index]} day")
+        if not known and day.split == "test":
+            raise ConfigError(f"config key {key}: expected a training day (an evaluation day may never be empty, "
+                              f"and a first_weekdays/first_weekend rule of datasets.{dataset}.eval_days picks test "
+                              f"days by the week recovered from the data, so any test day may be one), found "
+                              f"{_shown(text)}")
+
+
+def refuse_empty_days(dataset: str, days: list[Day], has_data: Sequence[bool], allowed: set, files: Sequence[Path],
+                      *, what: str, expected: str) -> list[str]:
+    """Every configured day must have data, unless ``datasets.<dataset>.allow_empty_days`` lists it.
+
+    Args:
+        dataset: dataset name; days: the tensor days; has_data: per tensor day, whether any record was read.
+        allowed: day keys of the allowance (`allowed_empty`); files: the raw files read.
+        what: what a day lacks ("record", "session", "line in the crop"); expected: what was expected instead.
+    Returns:
+        Labels of the empty days the allowance accepts (meta.json ``empty_days``).
+    Raises:
+        PrepError: naming the empty days that are not allowed and the files read.
+    """
+    empty = [d for d in days if not has_data[d.index]]
+    bad = [d.label for d in empty if d.key not in allowed]
+    if bad:
+        raise PrepError(f"{dataset}: no {what} for day(s) {bad} of the configured segments, in the "
+                        f"{describe_files(files)}; expected {expected}, or the day(s) listed in "
+                        f"datasets.{dataset}.allow_empty_days")
+    return [d.label for d in empty]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -3,7 +3,9 @@
 Raw format: daily `sms-call-internet-mi-YYYY-MM-DD.txt` (or .txt.gz), tab-separated, no header, 8 fields:
 square id, time interval (ms since the epoch, UTC, start of a 10-minute slot), country code, sms-in, sms-out,
 call-in, call-out, internet. A blank field means no activity. One square and slot has one line per country
-code. Demand = internet summed over country codes per square and slot; days and slots are local time.
+code. Demand = internet summed over country codes per square and slot; days and slots are local time. One
+file per date; exact duplicate lines are dropped and counted; every configured day must have a line in the
+crop unless ``allow_empty_days`` lists it.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ import pyarrow as pa
 from tqdm import tqdm
 
 from prep.config import MilanConfig
-from prep.days import calendar_days
+from prep.days import allowed_empty, calendar_days, refuse_empty_days
 from prep.rawio import PrepError, describe_sources, first_bad, iter_csv_batches
 from prep.tensor import SLOTS_PER_DAY, RawTensor
 
@@ -29,8 +31,18 @@ log = logging.getLogger(__name__)
 COLUMNS = ("square_id", "time_interval_ms", "country_code", "sms_in", "sms_out", "call_in", "call_out",
            "internet")
 _TYPES = {"square_id": pa.int64(), "time_interval_ms": pa.int64(), "internet": pa.float64()}
+# Every field is read, the ones not summed as text, so that exact duplicate lines can be told apart.
+_READ_TYPES = {c: _TYPES.get(c, pa.string()) for c in COLUMNS}
 _DATE_IN_NAME = re.compile(r"(\d{4}-\d{2}-\d{2})")
 SLOT_MS = 600_000
+
+
+def _date_in_name(text: str) -> dt.date | None:
+    """The date a file name carries, or None when the digits are no calendar date."""
+    try:
+        return dt.date.fromisoformat(text)
+    except ValueError:
+        return None
 
 
 def file_name(day: dt.date) -> str:
@@ -50,7 +62,9 @@ def read_raw(paths: Sequence[Path | str], squares: Sequence[int] | None = None, 
         time_ranges: allowed [lo, hi) UTC ms ranges (the configured segments); None allows any time.
         on_out_of_range: "error" (default) or "drop" for square ids outside the grid and times outside
             every range.
-        dropped: if given, counts of dropped lines by reason are added to it.
+        dropped: if given, counts of dropped lines by reason are added to it: ``duplicate_lines`` (exact
+            duplicates of an earlier line of the same file, all 8 fields equal, among the kept squares; always
+            present) and, in "drop" mode, the out-of-range reasons.
     Returns:
         DataFrame (square_id int64, time_interval_ms int64, internet float64), one row per square and slot
         present in the files, sorted; squares whose lines all have a blank internet field get 0.
@@ -58,14 +72,26 @@ def read_raw(paths: Sequence[Path | str], squares: Sequence[int] | None = None, 
         PrepError: naming the file and line for a bad field, negative count, id or time out of range.
     """
     counts = dropped if dropped is not None else {}
+    counts.setdefault("duplicate_lines", 0)
     parts: list[pl.DataFrame] = []
     keep = None if squares is None else pl.Series(list(squares), dtype=pl.Int64)
     for path in tqdm([Path(p) for p in paths], desc="milan files", unit="file", leave=False):
-        for line0, df in iter_csv_batches(path, names=COLUMNS, types=_TYPES, has_header=False, delimiter="\t"):
+        lines: list[pl.DataFrame] = []  # the file's kept lines: a day's file holds each of its lines once
+        for line0, df in iter_csv_batches(path, names=COLUMNS, types=_READ_TYPES, has_header=False,
+                                          delimiter="\t"):
             df = _check_batch(path, line0, df, n_squares, time_ranges, on_out_of_range, counts)
             if keep is not None:
                 df = df.filter(pl.col("square_id").is_in(keep.implode()))
-            parts.append(df.group_by("square_id", "time_interval_ms").agg(pl.col("internet").sum()))
+            lines.append(df)
+        if not lines:
+            continue
+        file_lines = pl.concat(lines)
+        # Equal lines have equal hashes: all hashes distinct means no duplicate (the usual case, cheap); else
+        # the exact comparison decides.
+        hashes = file_lines.hash_rows(seed=0)
+        unique = file_lines if hashes.n_unique() == hashes.len() else file_lines.unique()
+        counts["duplicate_lines"] += file_lines.height - unique.height
+        parts.append(unique.group_by("square_id", "time_interval_ms").agg(pl.col("internet").sum()))
     if not parts:
         return pl.DataFrame(schema={"square_id": pl.Int64, "time_interval_ms": pl.Int64, "internet": pl.Float64})
     return (pl.concat(parts).group_by("square_id", "time_interval_ms").agg(pl.col("internet").sum())
@@ -122,7 +148,9 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
     """Builds the Milan crop tensor in raw units from daily files.
 
     Files whose name carries a date outside the configured segments are skipped unread (counted in the
-    log); a segment day without any line is an error naming the expected file.
+    log). One source per date: two files dated the same day (``.txt`` and ``.txt.gz``) are an error naming
+    both. A segment day without any line in the crop is an error naming the day, the files read and the
+    expected file, unless ``allow_empty_days`` lists it.
 
     Args:
         cfg: datasets.milan.
@@ -133,12 +161,20 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
     days = calendar_days(cfg.split, dataset="milan")
     by_date = {d.key: d for d in days}
     selected, skipped = [], 0
+    sources: dict[dt.date, list[Path]] = {}
     for p in paths:
         m = _DATE_IN_NAME.search(Path(p).name)
-        if m and dt.date.fromisoformat(m.group(1)) not in by_date:
+        day = _date_in_name(m.group(1)) if m else None
+        if m and day not in by_date:
             skipped += 1
             continue
+        if day is not None:
+            sources.setdefault(day, []).append(Path(p))
         selected.append(Path(p))
+    for day, files in sorted(sources.items()):
+        if len(files) > 1:
+            raise PrepError(f"milan: day {day.isoformat()} has {len(files)} raw files: "
+                            f"{', '.join(str(f) for f in files)}; expected one source per date (keep one of them)")
     log.info("milan: %d files selected, %d skipped (dates outside the configured segments)", len(selected), skipped)
     if not selected:
         raise PrepError(f"milan: none of the {len(paths)} raw files is dated inside the configured segments "
@@ -170,10 +206,11 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
     values = np.zeros((len(days), SLOTS_PER_DAY, crop.rows, crop.cols))
     np.add.at(values, (day_index, slot, row, col), df["internet"].to_numpy())
     present = set(day_index.tolist())
-    missing = [d for d in days if d.index not in present]
-    if missing:
-        raise PrepError(f"milan: no record for day(s) {[d.label for d in missing]} of the configured segments; "
-                        f"expected files such as {file_name(missing[0].key)} among the raw files")
+    allowed = allowed_empty(cfg)
+    first_missing = next((d for d in days if d.index not in present and d.key not in allowed), days[0])
+    empty = refuse_empty_days("milan", days, [d.index in present for d in days], allowed, selected,
+                              what="line in the crop", expected=f"files such as {file_name(first_missing.key)} "
+                              f"among the raw files")
     weekday = [d.key.weekday() for d in days]
     return RawTensor(
         dataset="milan", days=days, values=values, weekday=weekday, weekend=[w >= 5 for w in weekday],
@@ -184,4 +221,5 @@ def build(cfg: MilanConfig, paths: Sequence[Path]) -> RawTensor:
                             "square id = grid_row*full_cols + grid_col + 1"},
         crop={"rule": "fixed", "first_row": crop.first_row, "first_col": crop.first_col,
               "rows": crop.rows, "cols": crop.cols},
-        dropped=dropped, notes={"files_skipped_outside_segments": skipped}, sources=describe_sources(selected))
+        dropped=dropped, notes={"files_skipped_outside_segments": skipped}, sources=describe_sources(selected),
+        empty_days=empty)

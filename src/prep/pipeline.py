@@ -82,6 +82,11 @@ def prepare_dataset(cfg: DatasetConfig, common: CommonPrep, dataset: str, *, raw
         from prep.yjmob import build
     raw_tensor = build(cfg, paths)  # type: ignore[arg-type]
     eval_days = pick_eval_days(raw_tensor.days, raw_tensor.weekend, cfg.eval_days, dataset=dataset)
+    labels = [d.label for d in raw_tensor.days]
+    empty_eval = [labels[i] for s in ("id", "ood") for i in eval_days[s] if labels[i] in raw_tensor.empty_days]
+    if empty_eval:  # the config check refuses such an allowance; this guards the tensor itself
+        raise PrepError(f"{dataset}: evaluation day(s) {empty_eval} have no record; expected data on every "
+                        f"evaluation day (remove them from datasets.{dataset}.allow_empty_days)")
     ref_mean = None
     if dataset != common.kappa_reference:
         if reference_meta is None:

@@ -61,6 +61,26 @@ def describe_sources(paths: Sequence[Path]) -> list[dict]:
     return [{"name": p.name, "bytes": p.stat().st_size, "sha256": sha256_file(p)} for p in paths]
 
 
+def describe_files(paths: Sequence[Path | str]) -> str:
+    """The raw files read, for messages: "2 file(s) read from DIR: ['a.txt', 'b.txt']" (full paths when the
+    files lie in several directories)."""
+    paths = [Path(p) for p in paths]
+    dirs = {p.parent for p in paths}
+    if len(dirs) == 1:
+        return f"{len(paths)} file(s) read from {next(iter(dirs))}: {[p.name for p in paths]}"
+    return f"{len(paths)} file(s) read: {[str(p) for p in paths]}"
+
+
+def check_not_empty(path: Path, expected: str) -> None:
+    """A 0-byte raw file is an empty file, whatever its format (not a missing column or a corrupt archive).
+
+    Raises:
+        PrepError: naming the path and what the file should hold.
+    """
+    if path.is_file() and path.stat().st_size == 0:
+        raise PrepError(f"{path}: empty file (0 bytes); expected {expected}")
+
+
 def _open_stream(path: Path) -> pa.NativeFile:
     compression = "gzip" if path.name.endswith(".gz") else None
     return pa.input_stream(str(path), compression=compression)
@@ -112,14 +132,21 @@ def _column_names(path: Path, expected: Sequence[str], has_header: bool, delimit
     """Column names to give the parser; checks a header for the expected columns."""
     if not path.is_file():
         raise PrepError(f"{path}: no such file")
-    if not has_header:
-        return list(expected)
+    form = (f"a header line with the columns {list(expected)}, then one line per record" if has_header else
+            f"lines of {len(expected)} fields {list(expected)}")
+    check_not_empty(path, form)
     try:
         with _open_stream(path) as s:
-            first = s.read(1 << 16).split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r")
+            head = s.read(1 << 16)
     except (OSError, EOFError) as exc:
-        raise _explain(path, exc, column_names=list(expected), types={}, has_header=True,
+        raise _explain(path, exc, column_names=list(expected), types={}, has_header=has_header,
                        delimiter=delimiter) from exc
+    if not head.strip():
+        inside = "no data after gzip decompression" if path.name.endswith(".gz") else "white space only"
+        raise PrepError(f"{path}: empty file ({inside}); expected {form}")
+    if not has_header:
+        return list(expected)
+    first = head.split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r")
     found = [_norm(n) for n in first.split(delimiter)]
     missing = [n for n in expected if _norm(n) not in found]
     if missing:

@@ -2,12 +2,15 @@
 
 Raw format: columns month, date, start time, end time, latitude, longitude, user id; times
 `%Y-%m-%d %H:%M:%S` (local time) or Excel date cells. Rows with a missing or 0/0 location and sessions that
-end before they start are real: they are dropped and counted. Sessions crossing midnight are kept and
-counted at their start. Demand = session starts per 470 m cell and 10-min slot, trailing 3-slot mean
-(slot t and the two before it, never a later one), in the 20 x 20 window with the most training starts.
+end before they start are real: they are dropped and counted, as are exact duplicate rows (one source per
+session, across files). Sessions crossing midnight are kept and counted at their start. Every configured day
+must have a session unless ``allow_empty_days`` lists it. Demand = session starts per 470 m cell and 10-min
+slot, trailing 3-slot mean (slot t and the two before it, never a later one), in the 20 x 20 window with the
+most training starts.
 """
 from __future__ import annotations
 
+import calendar
 import datetime as dt
 import logging
 from collections.abc import Iterator, Sequence
@@ -19,9 +22,9 @@ import pyarrow as pa
 from tqdm import tqdm
 
 from prep.config import ShanghaiConfig
-from prep.days import calendar_days
+from prep.days import allowed_empty, calendar_days, refuse_empty_days
 from prep.grid import LatLonGrid, densest_window
-from prep.rawio import PrepError, describe_sources, first_bad, iter_csv_batches
+from prep.rawio import PrepError, check_not_empty, describe_sources, first_bad, iter_csv_batches
 from prep.tensor import SLOTS_PER_DAY, RawTensor, train_index
 
 log = logging.getLogger(__name__)
@@ -41,6 +44,7 @@ def _raw_tables(path: Path) -> Iterator[tuple[str, int, pl.DataFrame]]:
     if not path.is_file():
         raise PrepError(f"{path}: no such file")
     if path.suffix.lower() in (".xlsx", ".xlsm", ".xls"):
+        check_not_empty(path, f"an Excel workbook with the columns {list(COLUMNS)}")
         try:
             sheets = pl.read_excel(path, sheet_id=0, infer_schema_length=0, engine="calamine")
         except Exception as exc:  # the Excel engine raises its own exception types
@@ -68,14 +72,26 @@ def _parse_time(col: pl.Series) -> pl.Series:
     return full.fill_null(frac)
 
 
+def workbook_name(day: dt.date) -> str:
+    """The published half-month workbook holding `day`, e.g. data_11.1~11.15.xlsx."""
+    first, last = (1, 15) if day.day <= 15 else (16, calendar.monthrange(day.year, day.month)[1])
+    return f"data_{day.month}.{first}~{day.month}.{last}.xlsx"
+
+
 def iter_sessions(paths: Sequence[Path | str], *, dropped: dict[str, int] | None = None,
                   notes: dict[str, int] | None = None) -> Iterator[tuple[str, np.ndarray, pl.DataFrame]]:
     """Streams cleaned sessions file by file (sheet by sheet, or batch by batch for CSV).
 
+    One source per session: a row equal in every column to a row read before it (in the same or an earlier
+    file, e.g. a half-month workbook present twice under two names) is dropped and counted. Rows are compared
+    by value (times and coordinates parsed, the other columns as trimmed text), so an .xlsx and its CSV
+    export match. Only a 64-bit hash of each kept row is held, not the rows (two different rows share a hash
+    with a probability of about 1e-6 over the 7.2M published rows).
+
     Args:
         paths: .xlsx files or CSV exports with the published columns.
-        dropped: counts of dropped rows by reason are added to it (missing_location, zero_location,
-            end_before_start).
+        dropped: counts of dropped rows by reason are added to it (duplicate_rows, always present;
+            missing_location, zero_location, end_before_start).
         notes: counts of kept rows worth knowing are added to it (crossing_midnight: counted at their start).
     Yields:
         (where, rows, sessions): "file[, sheet]", (n,) row numbers in that file/sheet, DataFrame (user_id,
@@ -84,7 +100,9 @@ def iter_sessions(paths: Sequence[Path | str], *, dropped: dict[str, int] | None
         PrepError: missing file or column, unparseable time, non-numeric coordinate, naming file and row.
     """
     counts = dropped if dropped is not None else {}
+    counts.setdefault("duplicate_rows", 0)
     kept = notes if notes is not None else {}
+    seen = pl.Series("hash", [], dtype=pl.UInt64)  # row hashes of every row read so far
     for path in tqdm([Path(p) for p in paths], desc="shanghai files", unit="file", leave=False):
         for where, row0, df in _raw_tables(path):
             start, end = _parse_time(df["start time"]), _parse_time(df["end time"])
@@ -104,10 +122,16 @@ def iter_sessions(paths: Sequence[Path | str], *, dropped: dict[str, int] | None
                     raise PrepError(f"{where}, row {row0 + i}, column {name!r}: expected a number, found {raw[i]!r}")
                 coords[name] = val
             lat, lon = coords["latitude"], coords["longitude"]
-            missing = lat.is_null() | lon.is_null()
-            zero = ~missing & (lat == 0) & (lon == 0)
-            reversed_ = ~missing & ~zero & end.is_not_null() & (end < start)
-            keep = ~(missing | zero | reversed_)
+            row_hash = pl.DataFrame({"month": df["month"].str.strip_chars(), "date": df["date"].str.strip_chars(),
+                                     "start": start, "end": end, "latitude": lat, "longitude": lon,
+                                     "user": df["user id"].str.strip_chars()}).hash_rows(seed=0)
+            duplicate = ~row_hash.is_first_distinct() | row_hash.is_in(seen.implode())
+            seen = pl.concat([seen, row_hash.filter(~duplicate).rename("hash")])
+            counts["duplicate_rows"] += int(duplicate.sum())
+            missing = ~duplicate & (lat.is_null() | lon.is_null())
+            zero = ~duplicate & ~missing & (lat == 0) & (lon == 0)
+            reversed_ = ~duplicate & ~missing & ~zero & end.is_not_null() & (end < start)
+            keep = ~(duplicate | missing | zero | reversed_)
             counts["missing_location"] = counts.get("missing_location", 0) + int(missing.sum())
             counts["zero_location"] = counts.get("zero_location", 0) + int(zero.sum())
             counts["end_before_start"] = counts.get("end_before_start", 0) + int(reversed_.sum())
@@ -199,6 +223,12 @@ def build(cfg: ShanghaiConfig, paths: Sequence[Path]) -> RawTensor:
     if counts is None or counts.height == 0:
         raise PrepError(f"shanghai: no valid session inside the declared grid and the configured segments in "
                         f"{len(paths)} file(s)")
+    per_day = np.bincount(counts["day"].to_numpy(), weights=counts["len"].to_numpy(), minlength=len(days))
+    allowed = allowed_empty(cfg)
+    first_missing = next((d for d in days if per_day[d.index] == 0 and d.key not in allowed), days[0])
+    empty = refuse_empty_days("shanghai", days, (per_day > 0).tolist(), allowed, paths, what="session",
+                              expected=f"sessions on every configured day (e.g. the half-month workbook "
+                              f"{workbook_name(first_missing.key)} among the raw files)")
     train_days = set(train_index(days).tolist())
     tr = counts.filter(pl.col("day").is_in(list(train_days))).group_by("row", "col").agg(pl.col("len").sum())
     totals = np.zeros((n_rows, n_cols))
@@ -213,10 +243,6 @@ def build(cfg: ShanghaiConfig, paths: Sequence[Path]) -> RawTensor:
     starts[win["day"].to_numpy(), win["slot"].to_numpy(), win["row"].to_numpy() - r0,
            win["col"].to_numpy() - c0] = win["len"].to_numpy()
     values = trailing_mean(starts, cfg.window_slots, [d.key for d in days])
-    per_day = np.bincount(counts["day"].to_numpy(), weights=counts["len"].to_numpy(), minlength=len(days))
-    empty = [d.label for d in days if per_day[d.index] == 0]
-    if empty:
-        log.warning("shanghai: no session at all on %d configured day(s): %s", len(empty), empty)
     lat0, lon0 = grid.centre(np.array([r0]), np.array([c0]))
     weekday = [d.key.weekday() for d in days]
     log.info("shanghai: window rows %d..%d, cols %d..%d (%d training starts); dropped %s", r0,

@@ -17,7 +17,7 @@ import polars as pl
 import pyarrow as pa
 
 from prep.config import YJMobConfig
-from prep.days import numbered_days, recover_week
+from prep.days import allowed_empty, numbered_days, recover_week, refuse_empty_days
 from prep.grid import densest_window
 from prep.rawio import PrepError, describe_sources, first_bad, iter_csv_batches
 from prep.tensor import SLOTS_PER_DAY, RawTensor, train_index
@@ -147,9 +147,8 @@ def build(cfg: YJMobConfig, paths: list[Path]) -> RawTensor:
         tr = np.isin(d, list(train_d))
         flat = (df["y"].to_numpy()[tr].astype(np.int64) - 1) * n + df["x"].to_numpy()[tr] - 1
         cell_train += np.bincount(flat, minlength=n * n)
-    missing = [f"d{d}" for d in day_numbers if per_day[d] == 0]
-    if missing:
-        raise PrepError(f"{path}: no record for day(s) {missing} of the configured segments")
+    empty = refuse_empty_days("yjmob", days, [per_day[d.key] > 0 for d in days], allowed_empty(cfg), [path],
+                              what="record", expected="records (uid,d,t,x,y) on every configured day")
     r0, c0, total = densest_window(cell_train.reshape(n, n), cfg.crop.rows, cfg.crop.cols)
     if total == 0:
         raise PrepError(f"{path}: the densest {cfg.crop.rows}x{cfg.crop.cols} window holds no training record")
@@ -178,7 +177,7 @@ def build(cfg: YJMobConfig, paths: list[Path]) -> RawTensor:
               "convention": "tensor row r = y - first_y (y taken to grow northward), col c = x - first_x"},
         crop={"rule": "densest_train", "first_x": x0, "first_y": y0, "rows": cfg.crop.rows, "cols": cfg.crop.cols,
               "train_records": int(total)},
-        dropped=dropped, sources=describe_sources([path]),
+        dropped=dropped, sources=describe_sources([path]), empty_days=empty,
         week={"lag": week.lag, "pseudo_weekend_phases": week.pseudo_weekend_phases,
               "acf": {str(k): v for k, v in week.acf.items()}, "phase_means": week.phase_means,
               "phase": "d mod lag", "from": "training daily totals of the crop"})
