@@ -1,8 +1,9 @@
-"""Command line: `python -m audits [--root DIR] [--config config.yaml] [--profile NAME] [--out results/audit]`.
+"""Command line: `python -m audits [--root DIR] [--config config.yaml] [--profile NAME] [--out DIR]`.
 
 Reads the config file, selects the profile, resolves the settings once (dswm.settings.resolve), runs the audit
-outside Snakemake, writes report.json and report.md, and exits 1 when any check fails (2 when the config is
-invalid).
+outside Snakemake, writes report.json and report.md into its own directory (default <root>/results/audit/cli/,
+never the workflow's results/audit/report.json, which the tables rule is gated on), and exits 1 when any check
+fails (2 when the config is invalid).
 """
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ from pathlib import Path
 from audits.report import to_markdown, write_report
 from audits.runner import run_audit
 
+CLI_OUT = "results/audit/cli"
+"""Where the command line writes its report unless told otherwise: beside, not over, the workflow's report."""
+
 
 def main(argv: list[str] | None = None) -> int:
     """Runs the audit; returns the exit status (0 pass, 1 a check failed, 2 the config is invalid)."""
@@ -24,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--root", default=".", help="the workflow's working directory (holds results/)")
     ap.add_argument("--config", default="config.yaml", help="config file the pipeline ran under (YAML or JSON)")
     ap.add_argument("--profile", default=None, help="override the config's profile (as --config profile=NAME)")
-    ap.add_argument("--out", default=None, help="report directory (default: <root>/results/audit)")
+    ap.add_argument("--out", default=None, help=f"report directory (default: <root>/{CLI_OUT})")
     args = ap.parse_args(argv)
 
     root = Path(args.root)
@@ -38,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"{exc}\n")
         return 2
     report = run_audit(root=root, settings=settings, extra_reads=[cfg_path])
-    out = Path(args.out) if args.out else root / "results" / "audit"
+    out = Path(args.out) if args.out else root / CLI_OUT
     write_report(report, json_path=out / "report.json", md_path=out / "report.md")
     if not report["passed"]:
         sys.stderr.write(to_markdown(report).split("## Evidence")[0])

@@ -55,7 +55,6 @@ class AuditContext:
         self.profile = settings.profile
         self.datasets = list(settings.run.datasets)
         self.methods = list(settings.methods)
-        self.scenario = settings.scenario
         self.results = self.root / "results"
         self.ledger = ledger or ReadLedger(root=self.root, guarded=[self.root])
         self._meta: dict[str, dict] = {}
@@ -65,6 +64,42 @@ class AuditContext:
         """Values checks share (e.g. statistics recomputed from raw files), keyed by the module that owns them."""
 
     # ---- settings-derived expectations ----------------------------------------------------------------
+    @property
+    def intensity_calibrated(self) -> bool:
+        """True when ``scenario.demand_intensity`` is ``calibrate``: the jobs took u from the calibrate record."""
+        return self.settings.scenario.calibrates
+
+    @property
+    def calibration_record_path(self) -> Path:
+        """The calibrate rule's record (``dswm.settings.CALIBRATION_RECORD``) under the audited root."""
+        from dswm.settings import CALIBRATION_RECORD
+
+        return self.root / CALIBRATION_RECORD
+
+    @cached_property
+    def scenario(self):
+        """The scenario the jobs ran under: the settings', with u read from the calibrate rule's record when
+        ``scenario.demand_intensity`` is ``calibrate`` (``dswm.settings.calibrated_scenario``, the jobs' own
+        function, so the expected hashes use the number the jobs used).
+
+        Raises:
+            AuditInputError: u is ``calibrate`` and the record is missing or not valid (the message names the file
+                and the key).
+        """
+        from dswm.config import ConfigError
+        from dswm.settings import calibrated_scenario
+
+        if not self.intensity_calibrated:
+            return self.settings.scenario
+        path = self.calibration_record_path
+        try:
+            self.ledger.track(path)
+            return calibrated_scenario(self.settings.scenario, path)
+        except (FileNotFoundError, ConfigError) as exc:
+            msg = str(exc).replace(str(path), self.rel(path))
+            raise AuditInputError(f"{msg} (scenario.demand_intensity is 'calibrate': the jobs took u from this "
+                                  f"record)") from exc
+
     def section(self, ds: str) -> DatasetConfig:
         """The typed ``datasets.<ds>`` section."""
         return getattr(self.settings.datasets, ds)

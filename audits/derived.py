@@ -4,8 +4,9 @@
   recomputation from the raw TRAINING daily totals.
 * `check_initial_positions`: the initial (and static) UAV positions recorded with every result are the
   demand-weighted K-means of the TRAINING mean map, and differ from the all-days K-means.
-* `check_calibration`: the demand intensity u of the settings reproduces the calibration target with Static on
-  the reference dataset's TRAINING days, and the calibration record names those days only.
+* `check_calibration`: the demand intensity u the jobs used (config.yaml's number, or with
+  `scenario.demand_intensity: calibrate` the calibrate rule's record) reproduces the calibration target with
+  Static on the reference dataset's TRAINING days, and the calibration record names those days only.
 """
 from __future__ import annotations
 
@@ -184,34 +185,44 @@ def static_served_ratio(ctx: AuditContext, ds: str, days: np.ndarray, intensity:
 
 
 def check_calibration(ctx: AuditContext) -> Check:
-    """The configured intensity u was calibrated on the reference dataset's training days."""
+    """The intensity u the jobs used was calibrated on the reference dataset's training days."""
     from audits.positions import calibration_record
 
     cal = ctx.settings.calibration
     ds, target = cal.dataset, float(cal.target_served_ratio)
+    from_record = ctx.intensity_calibrated  # scenario.demand_intensity: calibrate, u is the record's
+    source = (f"the calibrate rule's record {ctx.rel(ctx.calibration_record_path)}" if from_record else
+              "config.yaml's scenario.demand_intensity")
     chk = Check(id="statistics.calibration", family="statistics",
                 tolerance=f"|served ratio - target| <= {SR_TOL:g}",
-                claim=f"Static at the configured demand intensity u serves the calibration target on the {ds} "
-                      f"TRAINING days (recomputed), and the calibration record names those days only.")
-    u = float(ctx.scenario.demand_intensity)
+                claim=f"Static at the demand intensity u the jobs used ({source}) serves the calibration target on "
+                      f"the {ds} TRAINING days (recomputed), and the calibration record names those days only.")
     try:
+        u = float(ctx.scenario.demand_intensity)
         train = ctx.train_index(ds)
         sr_train = static_served_ratio(ctx, ds, train, u)
     except (AuditInputError, KeyError) as exc:
         chk.fail(f"{exc} — the calibration cannot be verified")
         return chk
-    chk.evidence = {"dataset": ds, "u": u, "target": target, "static_sr_train": sr_train}
+    chk.evidence = {"dataset": ds, "u": u, "u_from": source, "target": target, "static_sr_train": sr_train}
     if not abs(sr_train - target) <= SR_TOL:
         sr_test = static_served_ratio(ctx, ds, ctx.test_index(ds), u)  # only to name the leak
         chk.evidence["static_sr_test"] = sr_test
         leak = (" — it matches the TEST days instead: u calibrated on test days"
                 if abs(sr_test - target) <= SR_TOL else "")
-        chk.fail(f"config.yaml: scenario.demand_intensity = {u:g} gives Static a served ratio of {sr_train:.4f} on "
-                 f"the {ds} training days, target {target:g}{leak} (run the calibrate rule and copy its value)")
+        fix = ("the record does not reproduce its own calibration; run the calibrate rule again" if from_record else
+               "run the calibrate rule and copy its value, or set it to calibrate")
+        where = (f"{ctx.rel(ctx.calibration_record_path)}: demand_intensity" if from_record else
+                 "config.yaml: scenario.demand_intensity")
+        chk.fail(f"{where} = {u:g} gives Static a served ratio of {sr_train:.4f} on the {ds} training days, target "
+                 f"{target:g}{leak} ({fix})")
     try:
         where, rec = calibration_record(ctx)
     except FileNotFoundError as exc:
-        chk.evidence["record"] = f"{exc}; u verified by the recomputation above only"
+        if from_record:  # not reached in practice: ctx.scenario already needed the record
+            chk.fail(f"{exc} — scenario.demand_intensity is calibrate, so u must come from it")
+        else:
+            chk.evidence["record"] = f"{exc}; u verified by the recomputation above only"
         return chk
     except AuditInputError as exc:
         chk.fail(str(exc))

@@ -54,7 +54,7 @@ def calibration_record(ctx: AuditContext) -> tuple[str, dict]:
     """(path relative to the root, content) of the calibration record.
 
     Raises:
-        FileNotFoundError: the calibrate rule has not run (its record is optional: calibration is run by hand).
+        FileNotFoundError: the calibrate rule has not run (its record is optional when config.yaml holds u).
         AuditInputError: the record is not valid JSON.
     """
     path: Path = ctx.results / "calibration" / CALIBRATION_RECORD

@@ -1,16 +1,17 @@
 """Runs every check under the read-only guard, proves nothing changed, and writes the report.
 
-`run_audit` returns the report dict; `write_report` (audits.report) writes it; `gate` turns a written report
-into the pass/fail decision the `audit` target enforces.
+`run_audit` returns the report dict; `write_report` (audits.report) writes it; `gate` decides whether a written
+report lets tables be built: it passed, it audits the current profile and settings (`report_identity`), and
+every file it vouches for still hashes to the value the audit took.
 """
 from __future__ import annotations
 
 import json
 import logging
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from audits import crop, derived, protocol, splits, statistics, training
 from audits.context import AuditContext
@@ -35,6 +36,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     derived.check_calibration,
     protocol.check_hashes,
     protocol.check_result_days,
+    protocol.check_result_records,
     protocol.check_bcd_search_identical,
     training.check_training_days,
     training.check_checkpoints,
@@ -93,22 +95,99 @@ def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] |
         proof.fail(msg)
     proof.evidence = {"files_read": len(ro["files"]), "changed": len(ro["changed"])}
     checks.append(proof)
-    header = {"profile": ctx.profile, "datasets": ctx.datasets, "methods": ctx.methods,
-              "config_hash": settings.hash()}
+    header = {**report_identity(settings), "datasets": ctx.datasets, "methods": ctx.methods,
+              "settings_files": [ledger.rel(p) for p in extra_reads or []]}
     return build_report(checks=checks, read_only=ro, header=header)
 
 
-def gate(report_json: Path | str) -> list[str]:
-    """The failing checks of a written report (empty = the audit passed).
+def report_identity(settings: Settings) -> dict:
+    """{"profile", "config_hash"} the report of an audit under `settings` carries.
 
-    Raises:
-        ValueError: the report is missing its verdict.
+    `config_hash` is the hash of the audit's settings (`dswm.settings.audit_slice`, rebuilt as the audit_report
+    rule's job rebuilds it), so the workflow and `python -m audits` give one config.yaml one hash, and the tables
+    rule can compute, from its own settings, the identity the report must carry.
     """
-    with open(report_json, "r", encoding="utf-8") as fh:
-        report = json.load(fh)
-    if "passed" not in report or "checks" not in report:
-        raise ValueError(f"{report_json}: not an audit report (expected keys 'passed' and 'checks')")
+    from dswm.settings import Settings, audit_slice, param, read_param
+
+    audited = Settings.from_plain(read_param(param(audit_slice(settings))))
+    return {"profile": audited.profile, "config_hash": audited.hash()}
+
+
+def gate(report_json: Path | str, *, expect: Mapping[str, Any] | None = None,
+         root: Path | str | None = None) -> list[str]:
+    """Why a written report does not let tables be built (empty = it does).
+
+    Args:
+        report_json: the report (results/audit/report.json).
+        expect: {"profile", "config_hash"} of the current settings (`report_identity`); the report must carry
+            both, or it belongs to another run.
+        root: the workflow's working directory; every file the report vouches for (`read_only.files`: `path`,
+            `sha256_after`) must still hash to the value the audit took, the settings files aside (the
+            config_hash vouches for the settings). Not checked when None.
+    Returns:
+        One message per reason, each naming the file and what to do. A report of another profile or other
+        settings, or one that cannot be read, yields only that; a failed audit yields a summary, then each
+        finding as "<check id>: <finding>"; otherwise each vouched file that is missing or changed.
+    """
+    where = str(report_json)
+    profile = (expect or {}).get("profile")
+    cmd = "`snakemake --cores 2 tables" + (f" --config profile={profile}" if profile else "") + "`"
+    redo = f"delete {where} and run {cmd} to audit the tree afresh"
+    try:
+        with open(report_json, "r", encoding="utf-8") as fh:
+            report = json.load(fh)
+    except OSError as exc:
+        return [f"{where}: cannot be read ({exc.strerror or exc}); {redo}"]
+    except ValueError as exc:
+        return [f"{where}: not valid JSON ({exc}); {redo}"]
+    need = ["passed", "checks", *(["profile", "config_hash"] if expect is not None else []),
+            *(["read_only"] if root is not None else [])]
+    missing = [k for k in need if not isinstance(report, dict) or k not in report]
+    if missing:
+        return [f"{where}: not an audit report (lacks {', '.join(repr(k) for k in missing)}); {redo}"]
+    if not isinstance(report["checks"], list) or not all(
+            isinstance(c, dict) and {"id", "passed", "failures"} <= set(c) for c in report["checks"]):
+        return [f"{where}: 'checks' is not a list of {{id, passed, failures}}; {redo}"]
+    if expect is not None:
+        wrong = []
+        if report["profile"] != expect["profile"]:
+            wrong.append(f"{where}: audits profile {report['profile']!r}, but the tables are built for profile "
+                         f"{expect['profile']!r} — the report belongs to another run; {redo}")
+        if report["config_hash"] != expect["config_hash"]:
+            wrong.append(f"{where}: config_hash = {report['config_hash']!r}, but the current settings hash to "
+                         f"{expect['config_hash']!r} — the report audits other settings; {redo}")
+        if wrong:
+            return wrong
     failing = [f"{c['id']}: {m}" for c in report["checks"] if not c["passed"] for m in c["failures"]]
-    if not report["passed"] and not failing:
-        failing = [f"{report_json}: verdict is fail"]
-    return failing
+    if not report["passed"] or failing:
+        md = Path(where).with_suffix(".md")
+        return [f"{where}: the leakage audit failed ({len(failing)} finding(s)); no table is built from a "
+                f"pipeline that fails it — fix each finding (below, and in {md}), then run {cmd}"] + failing
+    return _vouched(report, where=where, root=Path(root), redo=redo) if root is not None else []
+
+
+def _vouched(report: dict, *, where: str, root: Path, redo: str) -> list[str]:
+    """Every file the report vouches for that is missing or now hashes differently (settings files aside)."""
+    from prep.rawio import sha256_file
+
+    files = report["read_only"].get("files") if isinstance(report["read_only"], dict) else None
+    if not isinstance(files, list):
+        return [f"{where}: read_only.files = {files!r}; expected the list of {{path, sha256_after}} of every file "
+                f"the audit read; {redo}"]
+    skip = set(report.get("settings_files") or [])
+    out = []
+    for i, entry in enumerate(files):
+        if not (isinstance(entry, dict) and isinstance(entry.get("path"), str) and
+                isinstance(entry.get("sha256_after"), str)):
+            out.append(f"{where}: read_only.files[{i}] = {entry!r}; expected {{path, sha256_after}}; {redo}")
+            continue
+        if entry["path"] in skip:
+            continue
+        path = Path(entry["path"]) if Path(entry["path"]).is_absolute() else root / entry["path"]
+        if not path.is_file():
+            out.append(f"{entry['path']}: missing, but {where} vouches for it (SHA-256 {entry['sha256_after']}) — "
+                       f"the audited tree changed after the audit; {redo}")
+        elif (now := sha256_file(path)) != entry["sha256_after"]:
+            out.append(f"{entry['path']}: SHA-256 is {now}, {where} vouches for {entry['sha256_after']} — the file "
+                       f"changed after the audit; {redo}")
+    return out

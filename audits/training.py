@@ -6,7 +6,10 @@
 * `check_checkpoints`: the checkpoint and the model file of every train job hash to the SHA-256 the training
   manifest recorded when training ended, and every prepared file training read still hashes to the value
   recorded when it was read (so no checkpoint, model or training input changed once evaluation began reading
-  test-day data); file times agree; training declares that it read no test data.
+  test-day data); training declares that it read no test data. File times are compared only where content is
+  unproven: a checkpoint, model or result file whose SHA-256 (for a result, the model_sha256 it records loading)
+  equals the recorded one passes whatever its file time; any other checkpoint-like file in the run directory
+  must be older than the manifest.
 * `check_evaluated_models`: every learning method's result file records the model it evaluated, and that model
   is its training source's model.pt, hashing to the model_sha256 of the source's training manifest.
 """
@@ -14,6 +17,8 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+
+import polars as pl
 
 from audits.context import AuditContext, AuditInputError
 from audits.protocol import result_path, result_record
@@ -122,8 +127,27 @@ def _same_hash(chk: Check, ctx: AuditContext, path: Path, recorded, *, where: st
     return {"recorded": recorded, "found": found}
 
 
+def _proven(ctx: AuditContext, path: Path, recorded) -> bool:
+    """True when `path` hashes to the SHA-256 a manifest recorded for it: its content is the one recorded when
+    training ended, so its file time proves nothing more (a touch or a copy without times changes only that)."""
+    return bool(recorded) and path.is_file() and ctx.ledger.sha256(path) == recorded
+
+
+def _loaded_sha256(ctx: AuditContext, result: Path) -> str | None:
+    """The model_sha256 a result file records the evaluation loaded (None when it records none or is unreadable;
+    check_evaluated_models reports that)."""
+    from dswm.protocol.evaluation import read_model_record
+
+    try:
+        rec = read_model_record(ctx.ledger.track(result))
+    except (OSError, ValueError, pl.exceptions.PolarsError):
+        return None
+    return rec.get("model_sha256") if rec else None
+
+
 def _checkpoint(chk: Check, ctx: AuditContext, man: dict, where: str) -> dict:
-    """The recorded checkpoint exists, hashes to checkpoint_sha256 and carries the recorded write time."""
+    """The recorded checkpoint exists and hashes to checkpoint_sha256; where no such hash is recorded, or it
+    differs, its file time is the recorded write time."""
     ck = man.get("checkpoint")
     if not ck:
         chk.fail(f"{where}: no checkpoint recorded")
@@ -143,7 +167,9 @@ def _checkpoint(chk: Check, ctx: AuditContext, man: dict, where: str) -> dict:
     except ValueError:
         chk.fail(f"{where}: checkpoint_written_at = {rec!r}; expected YYYY-MM-DDTHH:MM:SSZ")
         return ev
-    if not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
+    if _proven(ctx, cpath, man.get("checkpoint_sha256")):
+        ev["checkpoint_time"] = "not compared: the content hashes to checkpoint_sha256"
+    elif not rec_t - CLOCK_SLACK_S <= written < rec_t + 1 + CLOCK_SLACK_S:
         chk.fail(f"{ctx.rel(cpath)}: modified at {_iso(written)}, the manifest recorded {rec} — the "
                  f"checkpoint was rewritten after training ended")
     return ev
@@ -193,13 +219,14 @@ def _data_files(chk: Check, ctx: AuditContext, man: dict, where: str, ds: str) -
 def check_checkpoints(ctx: AuditContext) -> Check:
     """Checkpoint, model and training inputs unchanged since training; training declares no test data read."""
     chk = Check(id="protocol.checkpoints", family="protocol",
-                tolerance=f"contents: SHA-256 equal; file times within {CLOCK_SLACK_S:g} s "
-                          f"(checkpoint_written_at is recorded to the second)",
+                tolerance=f"contents: SHA-256 equal; file times (compared only where no recorded hash proves the "
+                          f"content) within {CLOCK_SLACK_S:g} s (checkpoint_written_at is recorded to the second)",
                 claim="Every train job's checkpoint and model file hash to the SHA-256 its training manifest "
                       "recorded when training ended, and the prepared tensor and meta.json it read hash to the "
                       "values recorded when it read them, so none changed once evaluation began reading test-day "
-                      "data; no checkpoint file is newer than the manifest; no result file that evaluates the "
-                      "model is older than it; training declares it read no test data.")
+                      "data; no checkpoint file whose content is unproven (no recorded hash, or another one) is "
+                      "newer than the manifest; no result file that evaluates the model and does not record "
+                      "loading model_sha256 is older than it; training declares it read no test data.")
     for (ds, method, seed), users in training_jobs(ctx).items():
         try:
             mpath, man = _manifest(ctx, ds, method, seed)
@@ -219,15 +246,30 @@ def check_checkpoints(ctx: AuditContext) -> Check:
         closed = mpath.stat().st_mtime
         ev: dict = {"manifest_closed": closed, **_checkpoint(chk, ctx, man, where), **_model(chk, ctx, man, where, run),
                     "data_files_read": _data_files(chk, ctx, man, where, ds)}
+        # File times speak only where content is unproven: the recorded checkpoint and the model file that hash to
+        # the values the manifest recorded, and a result that records loading the model of model_sha256, are the
+        # files training and evaluation ended with, whenever their file times say they were written.
+        recorded = {(run / MODEL_FILE).resolve(): man.get("model_sha256")}
+        if man.get("checkpoint"):
+            recorded[_under_root(ctx, man["checkpoint"]).resolve()] = man.get("checkpoint_sha256")
+        proven_by_hash = []
         for f in sorted(run.rglob("*")) if run.is_dir() else []:
             if f.is_file() and f.suffix in CHECKPOINT_SUFFIXES and f.stat().st_mtime > closed + CLOCK_SLACK_S:
+                if _proven(ctx, f, recorded.get(f.resolve())):
+                    proven_by_hash.append(ctx.rel(f))
+                    continue
                 chk.fail(f"{ctx.rel(f)}: written at {_iso(f.stat().st_mtime)}, after the training manifest closed "
                          f"at {_iso(closed)} — a checkpoint written after reading test-day data")
         for user in users:
             result = result_path(ctx, ds, user, seed)
             if result.is_file() and result.stat().st_mtime + CLOCK_SLACK_S < closed:
+                if man.get("model_sha256") and _loaded_sha256(ctx, result) == man["model_sha256"]:
+                    proven_by_hash.append(ctx.rel(result))
+                    continue
                 chk.fail(f"{ctx.rel(result)}: written before its training manifest {where} closed — the "
                          f"evaluation did not use the final checkpoint")
+        if proven_by_hash:
+            ev["file_times_not_compared"] = proven_by_hash
         chk.evidence[f"{ds}/{method}/seed{seed}"] = {**ev, "evaluated_by": users}
     return chk
 

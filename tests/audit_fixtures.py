@@ -4,9 +4,9 @@
 raw files in the published Milan and YJMob formats (results/raw/...), the prepared tensors made by the real
 `prep` functions (results/data/...), per-day result files of static, greedy and two learning methods that share
 one training (dswm trains; dswm_wo_unc evaluates its model), each with the model record and the method record
-(resolved settings and BCD search) an evaluation stores, the training manifest and checkpoint, trajectories
-and the calibration record. Test days carry more demand than
-training days, so every training statistic differs from its all-days and test-segment values.
+(resolved settings and BCD search) an evaluation stores and the content record (eval_manifest.json) it writes
+last, the training manifest and checkpoint, trajectories and the calibration record. Test days carry more demand
+than training days, so every training statistic differs from its all-days and test-segment values.
 
 The tree's config is the repository's config.yaml shrunk (`fixture_config`), written as config.json; its
 settings are resolved once from that mapping (`dswm.settings.resolve`) and every writer here reads them typed.
@@ -24,6 +24,7 @@ from zoneinfo import ZoneInfo
 
 import numpy as np
 import polars as pl
+import pytest
 import yaml
 
 from dswm.settings import Settings, resolve
@@ -162,9 +163,18 @@ def evaluate_static(settings: Settings, root: Path, ds: str, seed: int) -> Path:
     write_days(res.days, run / "days.parquet", model_record(settings, root, ds, "static", seed),
                method_record(settings, "static", seed))
     np.savez(run / "trajectory.npz", **res.trajectories)
-    for f in ("days.parquet", "trajectory.npz"):
-        os.utime(run / f, (T0 + 20, T0 + 20))
+    write_record(run)
     return run / "days.parquet"
+
+
+def write_record(run: Path) -> None:
+    """Writes the content record the evaluate job writes last (`dswm.protocol.evaluation.write_eval_record`) for
+    the result files of `run`, and gives all three the fixture's result time."""
+    from dswm.protocol.evaluation import EVAL_OUTPUTS, EVAL_RECORD_FILE, write_eval_record
+
+    write_eval_record(run / EVAL_RECORD_FILE, {name: run / name for name in EVAL_OUTPUTS})
+    for f in (*EVAL_OUTPUTS, EVAL_RECORD_FILE):
+        os.utime(run / f, (T0 + 20, T0 + 20))
 
 
 def model_record(settings: Settings, root: Path, ds: str, method: str, seed: int) -> dict:
@@ -223,8 +233,7 @@ def write_results(settings: Settings, root: Path, ds: str, method: str, seed: in
         traj.update({f"{split}_pos": path, f"{split}_status": np.zeros(path.shape[:2], dtype=np.int64),
                      f"{split}_day": np.int64(ev[split][0]), f"{split}_label": np.str_(t.labels[ev[split][0]])})
     np.savez(run / "trajectory.npz", **traj)
-    for f in ("days.parquet", "trajectory.npz"):
-        os.utime(run / f, (T0 + 20, T0 + 20))
+    write_record(run)
     return run / "days.parquet"
 
 
@@ -303,3 +312,22 @@ def build_clean_tree(root: Path | str) -> Settings:
     cfg["calibration"]["target_served_ratio"] = calibrate(settings, root)
     (root / "config.json").write_text(json.dumps(cfg))
     return resolve(cfg)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """The fixture's environments are tiny (25 cells): one thread is fastest, and no worse on a busy machine.
+    Autouse in every module that imports it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    """The clean tree, built once per module: (its root, its settings)."""
+    root = tmp_path_factory.mktemp("clean")
+    return root, build_clean_tree(root)

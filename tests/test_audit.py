@@ -18,29 +18,12 @@ import numpy as np
 import polars as pl
 import pytest
 
-from audit_fixtures import (T0, build_clean_tree, method_record, model_record, prepare, write_results,
-                            write_training)
+from audit_fixtures import (T0, clean, method_record, model_record,  # noqa: F401 (fixtures)
+                            one_torch_thread, prepare, write_results, write_training)
 from audits import crop, derived, protocol, splits, statistics, training
 from audits.__main__ import main
 from audits.context import AuditContext
 from dswm.settings import Settings
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """The fixture's environments are tiny (25 cells): one thread is fastest, and no worse on a busy machine."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
-def clean(tmp_path_factory):
-    root = tmp_path_factory.mktemp("clean")
-    return root, build_clean_tree(root)
 
 
 @pytest.fixture
@@ -332,12 +315,26 @@ def test_a_run_without_a_bcd_search_passes_and_says_so(clean):
 
 def test_sharing_method_evaluated_before_its_source_training_ended(tree):
     root, settings = tree
-    result = root / "results/milan/dswm_wo_unc/seed0/days.parquet"
+    early = hashlib.sha256(b"dswm's model before its training ended").hexdigest()
+    rec = dict(model_record(settings, root, "milan", "dswm_wo_unc", 0), model_sha256=early)
+    result = write_results(settings, root, "milan", "dswm_wo_unc", 0, record=rec)
     os.utime(result, (T0 + 2, T0 + 2))  # before dswm's manifest closed (T0 + 10)
     chk = run(root, settings, training.check_checkpoints)
     assert chk.failures == ["results/milan/dswm_wo_unc/seed0/days.parquet: written before its training manifest "
                             "results/milan/dswm/seed0/train_manifest.json closed — the evaluation did not use the "
                             "final checkpoint"]
+
+
+def test_result_older_than_the_manifest_that_records_loading_the_final_model_passes(tree):
+    """The time rule speaks only where content is unproven: a result that records loading the model of the
+    manifest's model_sha256 evaluated the final model, whatever its file time (a copy without times)."""
+    root, settings = tree
+    result = root / "results/milan/dswm_wo_unc/seed0/days.parquet"
+    os.utime(result, (T0 + 2, T0 + 2))  # before dswm's manifest closed (T0 + 10)
+    chk = run(root, settings, training.check_checkpoints)
+    assert chk.passed, chk.failures
+    assert chk.evidence["milan/dswm/seed0"]["file_times_not_compared"] == [
+        "results/milan/dswm_wo_unc/seed0/days.parquet"]
 
 
 def test_checkpoint_written_after_training_ended(tree):
@@ -476,6 +473,55 @@ def test_intensity_calibrated_on_test_days(tree):
     chk = run(root, settings, derived.check_calibration)
     assert any("config.yaml: scenario.demand_intensity" in m and "u calibrated on test days" in m
                for m in chk.failures), chk.failures
+
+
+
+def calibrating(settings: Settings) -> Settings:
+    """The settings with `scenario.demand_intensity: calibrate` (u from the calibrate rule's record)."""
+    return dataclasses.replace(settings, scenario=dataclasses.replace(settings.scenario, demand_intensity="calibrate"))
+
+
+def test_with_calibrate_the_audit_expects_the_records_intensity(tree):
+    """The fixture's record holds the u its results were computed with: expected hashes and the calibration
+    check use that number; another number in the record fails both, and no advice to copy it."""
+    from audits.hashes import expected_hashes
+
+    root, settings = tree
+    ctx = AuditContext(root=root, settings=calibrating(settings))
+    assert ctx.scenario == settings.scenario
+    assert expected_hashes(ctx, "milan")["scenario_hash"] == settings.scenario.hash()
+    chk = run(root, calibrating(settings), derived.check_calibration)
+    assert chk.passed, chk.failures
+    assert chk.evidence["u_from"] == "the calibrate rule's record results/calibration/demand_intensity.json"
+    assert run(root, calibrating(settings), protocol.check_hashes).passed
+    rec_path = root / "results/calibration/demand_intensity.json"
+    rec = json.loads(rec_path.read_text())
+    rec_path.write_text(json.dumps({**rec, "demand_intensity": 2 * rec["demand_intensity"]}))
+    chk = run(root, calibrating(settings), derived.check_calibration)
+    [msg] = chk.failures
+    assert msg.startswith(f"results/calibration/demand_intensity.json: demand_intensity = "
+                          f"{2 * rec['demand_intensity']:g} gives Static a served ratio of ")
+    assert msg.endswith("(the record does not reproduce its own calibration; run the calibrate rule again)")
+    assert "copy" not in msg
+    hashes = run(root, calibrating(settings), protocol.check_hashes)
+    assert any("scenario_hash" in m and "different scenario constants" in m for m in hashes.failures), hashes.failures
+
+
+@pytest.mark.parametrize("record, found", [
+    ({"served_ratio": 0.74}, "missing key 'demand_intensity' (expected the positive u the calibrate rule writes; "
+                             "run it again)"),
+    ({"demand_intensity": -1.0}, "key 'demand_intensity' must be a positive number; found -1.0 (run the calibrate "
+                                 "rule again)"),
+])
+def test_with_calibrate_a_bad_record_fails_the_audit_naming_the_file_and_key(tree, record, found):
+    root, settings = tree
+    (root / "results/calibration/demand_intensity.json").write_text(json.dumps(record))
+    chk = run(root, calibrating(settings), derived.check_calibration)
+    assert chk.failures == [f"results/calibration/demand_intensity.json: {found} (scenario.demand_intensity is "
+                            f"'calibrate': the jobs took u from this record) — the calibration cannot be verified"]
+    hashes = run(root, calibrating(settings), protocol.check_hashes)
+    assert hashes.failures and all("results/calibration/demand_intensity.json: " + found in m
+                                   for m in hashes.failures), hashes.failures
 
 
 def test_crop_chosen_on_all_days(tree):

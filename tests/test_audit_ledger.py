@@ -74,13 +74,17 @@ def test_gate_and_report_files(tmp_path):
     bad.fail("results/milan/greedy/seed0/days.parquet: obs_spec_hash differs — a different observation spec")
     header = {"profile": "smoke", "datasets": ["milan"], "methods": ["greedy"], "config_hash": "x"}
     ro = {"files": [], "changed": [], "write_attempts": [], "unchanged": True}
-    for checks, expected in (([ok], []), ([ok, bad], [f"protocol.hashes: {bad.failures[0]}"])):
+    failed = (f"{tmp_path / 'r.json'}: the leakage audit failed (1 finding(s)); no table is built from a pipeline "
+              f"that fails it — fix each finding (below, and in {tmp_path / 'r.md'}), then run "
+              f"`snakemake --cores 2 tables`")
+    for checks, expected in (([ok], []), ([ok, bad], [failed, f"protocol.hashes: {bad.failures[0]}"])):
         report = build_report(checks=checks, read_only=ro, header=header)
         write_report(report, json_path=tmp_path / "r.json", md_path=tmp_path / "r.md")
         assert gate(tmp_path / "r.json") == expected
         assert report["families"]["protocol"]["passed"] is (not expected)
     assert "**FAIL**" in (tmp_path / "r.md").read_text()
     (tmp_path / "x.json").write_text(json.dumps({"checks": []}))
-    with pytest.raises(ValueError, match="not an audit report"):
-        gate(tmp_path / "x.json")
+    assert gate(tmp_path / "x.json") == [
+        f"{tmp_path / 'x.json'}: not an audit report (lacks 'passed'); delete {tmp_path / 'x.json'} and run "
+        f"`snakemake --cores 2 tables` to audit the tree afresh"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json", "r.md", "x.json"]  # no temp files left

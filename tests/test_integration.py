@@ -1,9 +1,10 @@
 """The whole DAG on the `smoke` profile in a temporary copy of the repository, then its outputs checked.
 
 One run (module fixture): `snakemake tables calibrate --config profile=smoke` builds the demo raw data of the
-three datasets, prepares them, creates the MLflow store, trains dswm and dswm_wo_dec (dswm_wo_unc and dswm_plus
-share dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits the tree,
-calibrates u on the Milan training days, and writes both tables.
+three datasets, prepares them, creates the MLflow store, calibrates u on the Milan training days (config.yaml
+says `calibrate`: every job that reads u takes it from that record), trains dswm and dswm_wo_dec (dswm_wo_unc and
+dswm_plus share dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits
+the tree, and writes both tables.
 """
 import csv
 import json
@@ -230,26 +231,40 @@ def test_every_job_is_one_finished_mlflow_run_and_a_rerun_adds_no_duplicate(run)
     assert sum(r.data.tags["job_key"] == "evaluate/yjmob/static/seed0" for r in finished) == 1
 
 
-def test_config_keeps_the_intensity_the_calibrate_rule_prints(run):
+def test_every_result_was_computed_with_the_intensity_the_calibrate_rule_wrote(run):
+    import dataclasses
+
+    from dswm.sim.scenario import DEMO_INTENSITY, Scenario
+
     report = json.loads((run / "results" / "calibration" / "demand_intensity.json").read_text())
     cfg = load_yaml(run / "config.yaml")
     assert report["dataset"] == "milan" and report["train_days"][0] == "2013-11-01" and len(report["train_days"]) == 10
     assert report["served_ratio"] == pytest.approx(cfg["calibration"]["target_served_ratio"],
                                                    abs=cfg["calibration"]["tolerance"])
-    # config.yaml holds the printed value (rounded to 4 significant digits)
-    assert cfg["scenario"]["demand_intensity"] == pytest.approx(report["demand_intensity"], rel=5e-4)
-    assert "calibrated demand_intensity" in (run / "logs" / "calibrate.log").read_text()
+    # config.yaml says `calibrate`: every job took u from the record, and hashed that number
+    assert cfg["scenario"]["demand_intensity"] == "calibrate"
+    used = dataclasses.replace(Scenario.from_dict(cfg["scenario"]), demand_intensity=report["demand_intensity"])
+    for ds in DATASETS:
+        for m in METHODS:
+            days = pl.read_parquet(run / "results" / ds / m / "seed0" / "days.parquet")
+            assert set(days["scenario_hash"]) == {used.hash()}, (ds, m)
+    assert DEMO_INTENSITY == pytest.approx(report["demand_intensity"], rel=5e-4)  # the stand-in of tests
+    log = (run / "logs" / "calibrate.log").read_text()
+    assert "calibrated demand_intensity" in log and "every job that reads u takes it from" in log
 
 
 def scheduled(work) -> dict[str, int]:
-    """{rule: job count} that a dry run of the smoke targets would run now ({} when nothing is to be done)."""
+    """{rule: job count} that a dry run of the smoke targets would run now, less the `tables` target's gate, which
+    runs on every call ({} when nothing else is to be done)."""
     proc = snakemake(work, "tables", "calibrate", "--cores", "2", "-n")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     text = proc.stdout + proc.stderr
     if "Job stats" not in text:
         return {}
     table = text.split("Job stats", 1)[1].split("total", 1)[0]
-    return {rule: int(n) for rule, n in re.findall(r"^(\w+)\s+(\d+)$", table, flags=re.M)}
+    jobs = {rule: int(n) for rule, n in re.findall(r"^(\w+)\s+(\d+)$", table, flags=re.M)}
+    assert jobs.pop("tables") == 1, jobs  # the gate on the tables in place: every call
+    return jobs
 
 
 def test_a_job_reruns_on_the_settings_it_reads_only(run):
@@ -277,9 +292,10 @@ def test_a_job_reruns_on_the_settings_it_reads_only(run):
         higher["scenario"]["altitude_m"] = cfg["scenario"]["altitude_m"] + 20.0
         (run / "config.yaml").write_text(yaml.safe_dump(higher, sort_keys=False))
         jobs = scheduled(run)
-        assert {"train", "evaluate", "audit_report", "audit", "tables"} <= set(jobs), jobs
+        assert {"train", "evaluate", "audit_report", "build_tables"} <= set(jobs), jobs
         # calibrate reads the scenario too (all but the intensity it calibrates); nothing of the data is redone
-        assert set(jobs) - {"train", "evaluate", "audit_report", "audit", "tables", "calibrate"} == set(), jobs
+        assert set(jobs) - {"train", "evaluate", "audit_report", "build_tables", "calibrate"} == set(), \
+            jobs
         assert jobs["evaluate"] == len(DATASETS) * len(METHODS)
     finally:
         (run / "config.yaml").write_text(original)

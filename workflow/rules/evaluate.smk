@@ -7,9 +7,13 @@ rule evaluate:
         tensor=rules.prepare.output.tensor,
         meta=rules.prepare.output.meta,
         mlflow=rules.mlflow_init.output.marker,
+        **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
     output:
         days="results/{dataset}/{method}/seed{seed}/days.parquet",
         trajectory="results/{dataset}/{method}/seed{seed}/trajectory.npz",
+        # The content record (SHA-256 and size of the two files above), written last: the audit checks every
+        # result file against it, whatever its file time says.
+        record="results/{dataset}/{method}/seed{seed}/eval_manifest.json",
     params:
         settings=lambda wc: S.param(S.evaluate_slice(SETTINGS, wc.method)),
         display=S.Untracked(DISPLAY),

@@ -1,12 +1,13 @@
 # The paper's two tables (Milan main, cross-dataset), from the per-day result files only.
 
 
-rule tables:
-    default_target: True
+rule build_tables:
     input:
         results=result_files(),
         **meta_files(),
-        audit=rules.audit.output.passed,  # no table from a pipeline that fails the leakage audit
+        # The gate: tables.py writes no table unless this report passed, audits the current profile and settings
+        # (params.audit) and every file it vouches for still hashes as the audit found it.
+        audit=rules.audit_report.output.json,
     output:
         main_md=f"results/tables/{MAIN_DATASET}_main.md",   # Table III of tables.main_dataset (milan)
         main_tex=f"results/tables/{MAIN_DATASET}_main.tex",
@@ -17,7 +18,28 @@ rule tables:
         room_csv="results/tables/room.csv",  # the room a forecast could fill (tables.room), per dataset and split
     params:
         settings=S.param(S.tables_slice(SETTINGS)),
+        audit=S.param(AUDIT_IDENTITY),  # {"profile", "config_hash"} the report must carry
     log:
         "logs/tables.log",
     script:
         "../scripts/tables.py"
+
+
+# `snakemake tables`, the default target. Snakemake checks the outputs of the rule it is asked for, but a missing
+# intermediate file (a deleted days.parquet) only when a job that reads it has to run anyway; with every table newer
+# than every existing input, none has, and a deleted result file would stay deleted. A targeted rule with inputs
+# and no output runs on every call, first regenerating any input that is missing (and the audit and tables after
+# it). Its job re-runs the gate of build_tables on the tables in place: a file the report vouches for that changed
+# since, whatever its file time, fails the call and removes the tables built from it.
+rule tables:
+    default_target: True
+    input:
+        tables=list(rules.build_tables.output),
+        report=rules.audit_report.output.json,
+        **AUDIT_INPUTS,
+    params:
+        audit=S.param(AUDIT_IDENTITY),
+    log:
+        "logs/tables_check.log",
+    script:
+        "../scripts/tables_check.py"

@@ -10,5 +10,7 @@ from dswm.settings import read_param
 w, inp, p = snakemake.wildcards, snakemake.input, snakemake.params  # noqa: F821
 evaluate_job(job=read_param(p.settings), display=p.display.value, tensor_dir=Path(inp.tensor).parent,
              dataset=w.dataset, method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
-             trajectory_out=snakemake.output.trajectory, model=inp.get("model"),  # noqa: F821
-             manifest=inp.get("manifest"), repo=snakemake.scriptdir + "/../..")  # noqa: F821
+             trajectory_out=snakemake.output.trajectory, record_out=snakemake.output.record,  # noqa: F821
+             model=inp.get("model"),
+             manifest=inp.get("manifest"), repo=snakemake.scriptdir + "/../..",  # noqa: F821
+             intensity=inp.get("intensity"))  # the calibrate rule's record, or None

@@ -4,7 +4,8 @@
                         SHA-256 of the checkpoint, the model file and every prepared file it read).
 * :func:`evaluate_job`  evaluate one (dataset, method, seed); days.parquet (with the record of the model it
                         loaded: path, SHA-256, training source, and the record of the method's resolved
-                        settings and BCD search) + trajectory.npz.
+                        settings and BCD search) + trajectory.npz, then eval_manifest.json (the SHA-256 and
+                        size of both, written last).
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
 
@@ -29,7 +30,7 @@ from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.protocol import calibration, evaluation, selection, tables
 from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, MethodSettings,
-                           Runtime, SelectionSettings)
+                           Runtime, SelectionSettings, calibrated_scenario)
 from dswm.sim.core import FleetCore, core_from_tensor
 from dswm.sim.scenario import Scenario
 from prep.atomic import save_npz, write_json
@@ -73,11 +74,19 @@ def _setup(runtime: Runtime | EvaluationSettings) -> None:
     keep_freed_memory()
 
 
-def _common(job: Mapping[str, Any], key: str, cls: type) -> tuple[Any, Scenario, MethodSettings]:
-    """The typed ``job[key]`` (runtime or evaluation settings), scenario and method of a train or evaluate job."""
+def _common(job: Mapping[str, Any], key: str, cls: type,
+            intensity: str | Path | None = None) -> tuple[Any, Scenario, MethodSettings]:
+    """The typed ``job[key]`` (runtime or evaluation settings), scenario and method of a train, evaluate or select
+    job; u is the calibrate rule's record ``intensity`` when the slice's scenario says ``calibrate``."""
     run = build(cls, job[key], key)
     _setup(run)
-    return run, Scenario.from_dict(job["scenario"]), MethodSettings.from_plain(job["method"], "method")
+    scenario = calibrated_scenario(Scenario.from_dict(job["scenario"]), intensity)
+    return run, scenario, MethodSettings.from_plain(job["method"], "method")
+
+
+def _as_used(job: Mapping[str, Any], scenario: Scenario) -> dict:
+    """``job`` with the scenario the job simulates (u as a number): what its MLflow run logs and hashes."""
+    return {**job, "scenario": to_plain(scenario)}
 
 
 def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
@@ -87,12 +96,13 @@ def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
 
 def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: str | Path, dataset: str, method: str,
               seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
-              repo: str | Path) -> dict:
+              repo: str | Path, intensity: str | Path | None = None) -> dict:
     """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
 
     Args:
         job: the plain form of ``dswm.settings.train_slice`` (the method carries its training settings only).
         evaluated_as: the methods whose evaluations load this model (an MLflow tag).
+        intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
 
     The manifest is what ``fit`` returns plus ``checkpoint_sha256`` (the checkpoint ``fit`` recorded, hashed when
     it returned), ``model``, ``model_sha256`` (``model_out`` once saved) and ``data_files_read``
@@ -101,7 +111,8 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
     Returns:
         The manifest written (without the loss history, which goes to MLflow).
     """
-    ev, scenario, m = _common(job, "runtime", Runtime)
+    ev, scenario, m = _common(job, "runtime", Runtime, intensity)
+    job = _as_used(job, scenario)
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="train", dataset=dataset,
@@ -157,20 +168,26 @@ def model_record(*, method: str, source: str | None = None, model: str | Path | 
 
 
 def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, dataset: str, method: str,
-                 seed: int, days_out: str | Path, trajectory_out: str | Path, repo: str | Path,
-                 model: str | Path | None = None, manifest: str | Path | None = None) -> evaluation.EvalResult:
-    """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz; track it in MLflow.
+                 seed: int, days_out: str | Path, trajectory_out: str | Path, record_out: str | Path,
+                 repo: str | Path, model: str | Path | None = None, manifest: str | Path | None = None,
+                 intensity: str | Path | None = None) -> evaluation.EvalResult:
+    """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz, then their content record
+    ``record_out``; track it in MLflow.
 
     Args:
         job: the plain form of ``dswm.settings.evaluate_slice``.
         display: how the job reports progress (not part of its rerun trigger).
+        intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
     training manifest. days.parquet records the model (:func:`model_record`) and the method's resolved settings
     with the BCD search it runs (:func:`method_record`) in its metadata; the MLflow run is tagged ``train_source``,
-    ``model_path`` and ``model_sha256``.
+    ``model_path`` and ``model_sha256``. ``record_out`` (``evaluation.write_eval_record``: the SHA-256 and size of
+    days.parquet and trajectory.npz) is written last, once both are complete and logged; the audit
+    (``protocol.result_records``) proves from it that neither changed since.
     """
-    ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
+    ev, scenario, m = _common(job, "evaluation", EvaluationSettings, intensity)
+    job = _as_used(job, scenario)
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="evaluate", dataset=dataset,
@@ -200,6 +217,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
                       "obs_spec_hash": result.days["obs_spec_hash"][0]})
         run.log_artifact(days_out)
         run.log_artifact(trajectory_out)
+    evaluation.write_eval_record(record_out, {"days.parquet": days_out, "trajectory.npz": trajectory_out})
     return result
 
 
@@ -252,7 +270,7 @@ def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], me
 
 
 def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, out: str | Path,
-               run_dir: str | Path) -> dict:
+               run_dir: str | Path, intensity: str | Path | None = None) -> dict:
     """Choose the shared search's strength and the planner's open values on TRAINING days
     (``dswm.protocol.selection``); write and return the JSON report.
 
@@ -260,8 +278,9 @@ def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Pa
         job: the plain form of ``dswm.settings.select_slice``.
         display: how the job reports progress.
         run_dir: where the selection's world model writes its checkpoint.
+        intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
     """
-    ev, scenario, m = _common(job, "evaluation", EvaluationSettings)
+    ev, scenario, m = _common(job, "evaluation", EvaluationSettings, intensity)
     sel = build(SelectionSettings, job["selection"], "selection")
     tensor = _load_tensor(tensor_dir)
     fit_days, val_days = selection.split_training_days(tensor, sel.fit_days)

@@ -78,6 +78,31 @@ def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str
     return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in days}})
 
 
+def check_demand_in_every_slot(tensor, days: Mapping[str, list[int]]) -> None:
+    """Refuse a day to evaluate that holds a slot with zero total demand in the crop.
+
+    The served ratio of such a slot is undefined (the physics reports 1 there, ``dswm.sim.physics.service``),
+    so a day with one would score a free 1.0 for that slot. A cell counts as demand as in the physics (above
+    ``DEMAND_EPS``).
+
+    Args:
+        tensor: a prep.tensor.DemandTensor; days: {split: tensor day indices} about to be evaluated.
+    Raises:
+        ValueError: naming the dataset, the day's label and split, and the slot(s).
+    """
+    from dswm.sim.physics import DEMAND_EPS
+
+    for split, idx in days.items():
+        for day in idx:
+            x = tensor.demand[int(day)]
+            total = np.where(x > DEMAND_EPS, x, 0.0).sum(axis=(1, 2), dtype=np.float64)
+            zero = np.flatnonzero(total <= 0.0).tolist()
+            if zero:
+                raise ValueError(f"{tensor.meta['dataset']}: evaluation day {tensor.labels[int(day)]} ({split}) has "
+                                 f"zero total demand in the crop in slot(s) {zero}; expected demand in every slot "
+                                 f"(the served ratio of an empty slot is undefined, never scored as 1.0)")
+
+
 def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, limits: Mapping[str, int | None],
              profile: str, device: str, batch_days: bool, progress_interval_s: float,
              trajectory: bool = True, days: Mapping[str, list[int]] | None = None) -> EvalResult:
@@ -99,11 +124,16 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
 
     Returns:
         EvalResult.
+
+    Raises:
+        ValueError: a day to evaluate has a slot with zero total demand (:func:`check_demand_in_every_slot`),
+            before any controller runs.
     """
     torch.manual_seed(seed)
     np.random.seed(seed)
     dataset = tensor.meta["dataset"]
     days = eval_days(tensor, limits) if days is None else {s: [int(d) for d in v] for s, v in days.items()}
+    check_demand_in_every_slot(tensor, days)
     labels = tensor.labels
     order = [(s, d) for s in days for d in days[s]]  # core index i <-> order[i]
     core = core_from_tensor(tensor, scenario, [d for _, d in order], device=device)
@@ -252,3 +282,34 @@ def read_method_record(path: str | Path) -> dict | None:
         ValueError: the record is not a JSON object.
     """
     return _read_record(path, METHOD_RECORD_KEY)
+
+
+EVAL_RECORD_FILE = "eval_manifest.json"
+"""The content record an evaluate job writes beside its result files, last: JSON {"files": {name: {"sha256",
+"bytes"}}} of every file of :data:`EVAL_OUTPUTS` (:func:`write_eval_record`)."""
+EVAL_OUTPUTS = ("days.parquet", "trajectory.npz")
+"""The result files of an evaluate job (file names in its run directory), the ones its content record covers."""
+
+
+def write_eval_record(path: str | Path, outputs: Mapping[str, str | Path]) -> dict:
+    """Write the content record of an evaluation's result files atomically; call it once they are complete.
+
+    Args:
+        path: the record (``<run directory>/`` :data:`EVAL_RECORD_FILE`).
+        outputs: {name of :data:`EVAL_OUTPUTS`: the file written}, every one of them.
+
+    Returns:
+        The record written: {"files": {name: {"sha256": hex SHA-256, "bytes": size}}}.
+
+    Raises:
+        ValueError: ``outputs`` does not name exactly the files of :data:`EVAL_OUTPUTS`; nothing is written.
+    """
+    from prep.atomic import write_json
+    from prep.rawio import sha256_file
+
+    if sorted(outputs) != sorted(EVAL_OUTPUTS):
+        raise ValueError(f"{path}: a content record covers {list(EVAL_OUTPUTS)}, got {sorted(outputs)}")
+    record = {"files": {name: {"sha256": sha256_file(Path(outputs[name])), "bytes": Path(outputs[name]).stat().st_size}
+                        for name in EVAL_OUTPUTS}}
+    write_json(path, record)
+    return record
