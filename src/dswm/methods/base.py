@@ -145,6 +145,13 @@ class Controller:
         """Actions ``(B, K, 3)`` for a batch of observations with a leading axis B (only when ``batched``)."""
         raise NotImplementedError(f"method {self.name!r} is not batched")
 
+    def day_stats(self) -> list[dict[str, float]]:
+        """Extra numbers of the days of the last :meth:`reset` / :meth:`reset_batch`, one mapping per day in that
+        order, asked for after the days' last action. The evaluation writes each key as a column
+        ``stat_<key>`` of days.parquet (``dswm.protocol.evaluation.STAT_PREFIX``); the default reports none.
+        """
+        return []
+
     def save(self, path) -> None:
         """Write everything needed to act again (weights, normalizer stats, RNG state)."""
         raise NotImplementedError(f"method {self.name!r} has no state to save")

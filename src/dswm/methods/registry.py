@@ -37,6 +37,8 @@ BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
           "ablation"),
     _spec("greedy", "dswm.methods.classical:GreedyController", "Greedy (BCD)", "model-free"),
     _spec("static", "dswm.methods.classical:StaticController", "Static (K-means)", "deployment"),
+    _spec("ins_woa", "dswm.methods.ins_woa:InsWoaController", "INS-WOA", "optimization"),
+    _spec("jtoratc", "dswm.methods.jtoratc:JTORATCController", "JTORATC", "BCD optim."),
     _spec("oracle", "dswm.methods.classical:OracleController", "Oracle (clairvoyant)", "upper bound"),
     _spec("perfect", "dswm.methods.dswm.agent:PerfectForecastController", "Perfect forecast (clairvoyant)",
           "upper bound"),

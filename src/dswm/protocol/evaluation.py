@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import numbers
+import re
 import sys
 import time
 from pathlib import Path
@@ -32,6 +35,10 @@ DAY_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy
                "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
                "dataset", "profile", "data_source"]
 
+STAT_PREFIX = "stat_"
+"""Prefix of the extra columns of days.parquet that a controller reports per day (``Controller.day_stats``); they
+follow DAY_COLUMNS, sorted, as Float64, null for a day whose controller did not report that key."""
+
 MODEL_RECORD_KEY = "dswm.evaluated_model"
 """days.parquet metadata key of the model record: JSON {method, train_source, model, model_sha256,
 train_manifest}; the last four are null for a method that does not learn."""
@@ -50,7 +57,7 @@ class EvalResult:
     """Outcome of one (dataset, method, seed) evaluation."""
 
     days: pl.DataFrame
-    """One row per evaluated day, columns DAY_COLUMNS."""
+    """One row per evaluated day, columns DAY_COLUMNS, then any ``stat_`` columns of the controller (STAT_PREFIX)."""
     trajectories: dict[str, np.ndarray]
     """Fleet positions per slot of the first ID and the first OOD day: ``{split}_pos`` (T, K, 2) metres,
     ``{split}_status`` (T, K), ``{split}_day`` (), ``{split}_label`` ()."""
@@ -176,12 +183,14 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
             bar.update(len(batch))
         sr_a, jain_a, energy_a = np.stack(sr, 1), np.stack(jain, 1), np.stack(energy, 1)  # (B, T) / (B, T-1)
         pos_a, status_a = np.stack(pos, 1), np.stack(status, 1)  # (B, T, K, 2) / (B, T, K)
+        stats = day_stat_columns(controller, len(batch))
         for b, i in enumerate(batch):
             split, day = order[i]
             e_kj = float(energy_a[b].mean()) / 1000.0
             rows.append({"day": day, "label": labels[day], "split": split, "sr_mean": float(sr_a[b].mean()),
                          "energy_kj_per_slot": e_kj, "energy_efficiency": float(sr_a[b].mean()) / (e_kj / 1000.0),
-                         "jain": float(jain_a[b].mean()), "plan_ms_per_slot": 1000.0 * plan_s / (len(batch) * steps)})
+                         "jain": float(jain_a[b].mean()), "plan_ms_per_slot": 1000.0 * plan_s / (len(batch) * steps),
+                         **stats[b]})
             if keep.get(day) == split:
                 traj.update({f"{split}_pos": pos_a[b].astype(np.float32), f"{split}_status": status_a[b],
                              f"{split}_day": np.int64(day), f"{split}_label": np.str_(labels[day])})
@@ -189,9 +198,39 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
     const = {"obs_spec_hash": obs_spec_hash(grid, scenario), "eval_days_hash": eval_days_hash(dataset, days, labels),
              "scenario_hash": scenario.hash(), "seed": seed, "method": controller.name, "dataset": dataset,
              "profile": profile, "data_source": str(tensor.meta["source"])}
-    df = pl.DataFrame([{**r, **const} for r in rows]).select(DAY_COLUMNS).with_columns(
-        pl.col("day").cast(pl.Int32), pl.col("seed").cast(pl.Int32))
+    stat_cols = sorted({c for r in rows for c in r if c.startswith(STAT_PREFIX)})
+    df = pl.DataFrame([{**dict.fromkeys(stat_cols), **r, **const} for r in rows]).select(DAY_COLUMNS + stat_cols)
+    df = df.with_columns(pl.col("day").cast(pl.Int32), pl.col("seed").cast(pl.Int32),
+                         *[pl.col(c).cast(pl.Float64) for c in stat_cols])
     return EvalResult(days=df, trajectories=traj)
+
+
+def day_stat_columns(controller: Controller, n_days: int) -> list[dict[str, float]]:
+    """The controller's ``day_stats()`` for the ``n_days`` days of its last reset, keys prefixed with STAT_PREFIX.
+
+    Raises:
+        ValueError: naming the method, when it reports another number of days than ``n_days``, a key that is not a
+            lower-case name, or a value that is not a finite number.
+    """
+    stats = controller.day_stats()
+    if not stats:
+        return [{} for _ in range(n_days)]
+    if len(stats) != n_days:
+        raise ValueError(f"method {controller.name!r}: day_stats() reported {len(stats)} day(s); expected one mapping "
+                         f"per day of the last reset ({n_days})")
+    out = []
+    for day in stats:
+        row = {}
+        for key, value in day.items():
+            if not (isinstance(key, str) and re.fullmatch(r"[a-z][a-z0-9_]*", key)):
+                raise ValueError(f"method {controller.name!r}: day_stats() key {key!r}; expected a lower-case name "
+                                 f"of letters, digits and underscores")
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise ValueError(f"method {controller.name!r}: day_stats() value {key}={value!r}; expected a finite "
+                                 f"number")
+            row[STAT_PREFIX + key] = float(value)
+        out.append(row)
+    return out
 
 
 def split_summary(days: pl.DataFrame) -> dict[str, float]:
