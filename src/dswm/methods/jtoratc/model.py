@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from dswm.sim.energy import hover_power, rotor_power
-from dswm.sim.physics import SHARE_FLOOR_HZ, ServiceParams, path_loss_db
+from dswm.sim.physics import SHARE_FLOOR_HZ, ServiceParams, associate, path_loss_db
 from dswm.sim.scenario import Rotor
 
 LN2 = math.log(2.0)
@@ -213,9 +213,11 @@ class Slot:
 
 
 def nearest(slot: Slot, pos: np.ndarray) -> np.ndarray:
-    """(G,) the nearest available UAV of every cell (ties to the lowest index): the environment's association."""
-    d2 = ((slot.cells[:, None, :] - pos[None, :, :]) ** 2).sum(-1)
-    return np.where(slot.avail[None, :], d2, np.inf).argmin(1)
+    """(G,) the nearest available UAV of every cell (ties to the lowest index): the environment's association,
+    computed by the environment's own ``dswm.sim.physics.associate``."""
+    pos_t = torch.as_tensor(np.asarray(pos, dtype=np.float64))[None]
+    avail_t = torch.as_tensor(np.asarray(slot.avail, dtype=bool))[None]
+    return associate(pos_t, avail_t, torch.as_tensor(np.asarray(slot.cells, dtype=np.float64)))[0].numpy()
 
 
 class Terms(NamedTuple):
