@@ -133,6 +133,10 @@ class AuditContext:
     def seeds(self, ds: str) -> list[int]:
         return [int(s) for s in self.settings.seeds(ds)]
 
+    def methods_on(self, ds: str) -> list[str]:
+        """The methods evaluated on ``ds`` (``methods.only_on`` may restrict a method to some datasets)."""
+        return [m for m in self.settings.methods_on(ds) if m in self.methods]
+
     def jobs(self) -> list[tuple[str, str, int]]:
         """Every (dataset, method, seed) of the selected profile."""
         return self.settings.jobs()

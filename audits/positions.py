@@ -36,7 +36,7 @@ def recorded_initial_positions(ctx: AuditContext, ds: str) -> dict[str, np.ndarr
     """
     k, slots = ctx.scenario.n_uavs, ctx.scenario.slots_per_day
     found: dict[str, np.ndarray] = {}
-    for method in ctx.methods:
+    for method in ctx.methods_on(ds):
         for seed in ctx.seeds(ds):
             path = ctx.run_dir(ds, method, seed) / "trajectory.npz"
             if not path.is_file():

@@ -66,7 +66,7 @@ def result_record(ctx: AuditContext, chk: Check, path: Path, *, read, key: str, 
 
 def _results(ctx: AuditContext, chk: Check, ds: str):
     """(method, seed, path, table) of every result file of ``ds``; a missing or unreadable one fails ``chk``."""
-    for method in ctx.methods:
+    for method in ctx.methods_on(ds):
         for seed in ctx.seeds(ds):
             path = result_path(ctx, ds, method, seed)
             try:
@@ -190,7 +190,7 @@ def check_bcd_search_identical(ctx: AuditContext) -> Check:
     runs: list[tuple[str, str, dict]] = []  # (file, method, plain search) of every result file that ran a BCD
     quiet: list[str] = []  # methods whose result files record no search
     for ds in ctx.datasets:
-        for method in ctx.methods:
+        for method in ctx.methods_on(ds):
             for seed in ctx.seeds(ds):
                 path = result_path(ctx, ds, method, seed)
                 where = ctx.rel(path)
@@ -267,7 +267,7 @@ def check_result_records(ctx: AuditContext) -> Check:
                       f"evaluate job recorded in {EVAL_RECORD_FILE}, which it writes last, once both are complete: "
                       f"no result file changed after its evaluation, whatever its file time says.")
     for ds in ctx.datasets:
-        for method in ctx.methods:
+        for method in ctx.methods_on(ds):
             for seed in ctx.seeds(ds):
                 run = ctx.run_dir(ds, method, seed)
                 rec_path = run / EVAL_RECORD_FILE

@@ -49,8 +49,7 @@ def _manifest(ctx: AuditContext, ds: str, method: str, seed: int) -> tuple[Path,
 
 def learning_jobs(ctx: AuditContext) -> list[tuple[str, str, int]]:
     """(dataset, method, seed) of every learning method of the profile."""
-    learners = [m for m in ctx.methods if ctx.learns(m)]
-    return [(ds, m, s) for ds in ctx.datasets for m in learners for s in ctx.seeds(ds)]
+    return [(ds, m, s) for ds, m, s in ctx.jobs() if ctx.learns(m)]
 
 
 def training_jobs(ctx: AuditContext) -> dict[tuple[str, str, int], list[str]]:

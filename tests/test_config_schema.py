@@ -83,7 +83,10 @@ def test_resolution_keeps_only_the_selected_profile_and_its_hash_differs(config)
     assert demo.hash() != smoke.hash()
     assert demo.hash() == runconfig.resolve(copy.deepcopy(config)).hash()
     jobs = demo.jobs()
-    assert len(jobs) == sum(len(demo.run.seeds[d]) for d in demo.run.datasets) * len(config["methods"]["run"])
+    everywhere = [m for m in config["methods"]["run"] if m not in config["methods"]["only_on"]]
+    assert len(jobs) == sum(len(demo.run.seeds[d]) * (len(everywhere) + sum(d in on for on in
+                                                                            config["methods"]["only_on"].values()))
+                            for d in demo.run.datasets)
     with pytest.raises(ConfigError, match="'profile' must be one of demo, smoke, paper; found 'fast'"):
         runconfig.resolve({**config, "profile": "fast"})
 
@@ -174,3 +177,30 @@ def test_snakemake_stops_before_any_job_on_a_bad_config(config, tmp_path, mutate
     for w in words:
         assert w in out, f"{w!r} not in: {out[-2000:]}"
     assert "Job stats" not in out  # nothing was scheduled
+
+
+def test_only_on_keeps_a_method_to_its_datasets_and_its_mistakes_are_named(config):
+    cfg = copy.deepcopy(config)
+    cfg["methods"]["only_on"] = {"greedy": ["milan", "yjmob"]}
+    s = runconfig.resolve(cfg)
+    assert s.methods_on("shanghai") == [m for m in cfg["methods"]["run"] if m != "greedy"]
+    assert s.methods_on("yjmob") == list(cfg["methods"]["run"])
+    assert sorted(d for d, m, _ in s.jobs() if m == "greedy") == ["milan", "milan", "yjmob"]  # Milan: 2 seeds
+    assert [(d, m) for d, m, _ in s.jobs() if m == "static"] == [("milan", "static")] * 2 + \
+        [("shanghai", "static"), ("yjmob", "static")]
+    assert runconfig.Settings.from_plain(runconfig.audit_slice(s)).methods_on("shanghai") == s.methods_on("shanghai")
+    cfg["methods"]["only_on"] = {"gredy": ["milan"]}
+    with pytest.raises(ConfigError, match="'methods.only_on.gredy' names 'gredy', which is not a registered method"):
+        runconfig.resolve(cfg)
+    cfg["methods"]["only_on"] = {"jtoratc": ["milan"]}  # a method left out of `run` keeps its entry, unused
+    cfg["methods"]["run"] = ["static", "greedy"]
+    assert runconfig.resolve(cfg).methods_on("shanghai") == ["static", "greedy"]
+    cfg["methods"]["run"] = config["methods"]["run"]
+    cfg["methods"]["only_on"] = {"greedy": ["shanghai"]}
+    cfg["profiles"]["demo"]["datasets"] = ["milan"]
+    with pytest.raises(ConfigError, match=r"'methods.only_on.greedy' is \['shanghai'\], none of which profile "
+                                          r"'demo' runs \(profiles.demo.datasets: milan\)"):
+        runconfig.resolve(cfg)
+    cfg["methods"]["only_on"] = {"greedy": ["rome"]}
+    with pytest.raises(ConfigError, match="methods.only_on.greedy"):
+        runconfig.resolve(cfg)

@@ -105,10 +105,12 @@ def test_batched_and_day_by_day_evaluation_agree_and_reruns_are_identical(make_s
 def test_split_summary_averages_days_of_each_split():
     df = pl.DataFrame({"split": ["id", "id", "ood"], "sr_mean": [0.5, 0.7, 0.9], "energy_kj_per_slot": [1.0, 3.0, 2.0],
                        "energy_efficiency": [1.0, 1.0, 1.0], "jain": [1.0, 0.5, 1.0],
-                       "plan_ms_per_slot": [1.0, 1.0, 2.0]})
+                       "plan_ms_per_slot": [1.0, 1.0, 2.0], "stat_solves": [24.0, 10.0, None]})
     s = split_summary(df)
     assert s["id/sr_mean"] == pytest.approx(0.6) and s["ood/sr_mean"] == pytest.approx(0.9)
     assert s["id/energy_kj_per_slot"] == pytest.approx(2.0) and s["id/jain"] == pytest.approx(0.75)
+    # a controller's per-day stats are averaged too; a split where it reported nothing is left out
+    assert s["id/stat_solves"] == pytest.approx(17.0) and "ood/stat_solves" not in s
 
 
 def test_a_writer_that_fails_midway_leaves_no_file_under_the_final_name(tmp_path):

@@ -279,6 +279,11 @@ def test_a_day_scores_the_same_batched_and_alone(make_scenario):
     cols = ["day", "sr_mean", "energy_kj_per_slot", "jain"]
     assert runs[0]["day"].to_list() == [2, 3, 4]
     np.testing.assert_allclose(runs[0].select(cols).to_numpy(), runs[1].select(cols).to_numpy(), rtol=1e-6)
+    # each day's file carries its search count and median solve time; one batch of 3 days searched as one
+    for days in runs:
+        assert days["stat_solves"].to_list() == [143.0, 143.0, 143.0]  # every decision of the day is searched
+        assert (days["stat_solve_ms_median"] > 0).all()
+    assert runs[0]["stat_solve_ms_median"].n_unique() == 1 and runs[1]["stat_solve_ms_median"].n_unique() == 3
 
 
 def test_it_is_registered_with_its_settings_from_config_yaml():

@@ -36,7 +36,12 @@ def test_methods_that_share_a_training_get_no_train_job_and_evaluate_the_source_
         assert inputs.split(", ")[:2] == [f"results/{ds}/dswm/seed{s}/model.pt",
                                           f"results/{ds}/dswm/seed{s}/train_manifest.json"]
     counts = dict(re.findall(r"^(train|evaluate)\s+(\d+)$", text, flags=re.M))
-    assert counts == {"train": str(2 * len(seeds)), "evaluate": str(len(resolved.methods) * len(seeds))}
+    assert counts == {"train": str(2 * len(seeds)), "evaluate": str(len(resolved.jobs()))}
+    # methods.only_on: JTORATC is evaluated on Milan's seeds only, INS-WOA on every dataset's
+    for method, datasets in (("jtoratc", ["milan"]), ("ins_woa", list(resolved.run.datasets))):
+        ran = re.findall(rf"^rule evaluate:\n(?:\s+.*\n)*?\s+output: results/(\w+)/{method}/seed(\d+)/days\.parquet",
+                         text, flags=re.M)
+        assert sorted(ran) == sorted((ds, str(s)) for ds, s in seeds if ds in datasets), method
 
 
 def test_the_model_of_a_method_that_shares_a_training_cannot_be_requested():

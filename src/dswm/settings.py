@@ -230,6 +230,8 @@ class MethodSettings:
     None for a method that does not learn."""
     options: Any
     """The typed settings of the controller class (its ``options_type``), or None."""
+    only_on: tuple[str, ...] | None = None
+    """The datasets it is evaluated on (``methods.only_on``); None: every dataset of the profile."""
 
     @property
     def controller_class(self):
@@ -272,9 +274,13 @@ class Settings:
         """Seeds of ``dataset`` in the selected profile."""
         return list(self.run.seeds[dataset])
 
+    def methods_on(self, dataset: str) -> list[str]:
+        """The methods evaluated on ``dataset``, in ``methods.run`` order (``methods.only_on`` may restrict one)."""
+        return [m.name for m in self.methods.values() if m.only_on is None or dataset in m.only_on]
+
     def jobs(self) -> list[tuple[str, str, int]]:
         """Every (dataset, method, seed) evaluation job of the selected profile, in table order."""
-        return [(ds, m, s) for ds in self.run.datasets for m in self.methods for s in self.seeds(ds)]
+        return [(ds, m, s) for ds in self.run.datasets for m in self.methods_on(ds) for s in self.seeds(ds)]
 
     def training_sources(self) -> dict[str, str]:
         """{learning method: the method whose trained model it evaluates}."""
@@ -310,13 +316,28 @@ def select_profile(config: Mapping[str, Any]) -> dict:
 def _methods(config: Mapping[str, Any], profile: str) -> dict[str, MethodSettings]:
     """Every method of ``methods.run`` with its class, typed settings and training source."""
     section = config["methods"]
+    only_on = dict(section.get("only_on") or {})
+    for name, datasets in only_on.items():
+        if name not in section["run"]:  # a method left out of `run` keeps its entry, unused
+            if name not in registry.BUILTIN and name not in section.get("user", {}):
+                raise ConfigError(f"config.yaml: key 'methods.only_on.{name}' names {name!r}, which is not a "
+                                  f"registered method (expected one of {', '.join(sorted(registry.BUILTIN))}, or a "
+                                  f"user method of 'methods.user')")
+            continue
+        ran = [d for d in datasets if d in config["profiles"][profile]["datasets"]]
+        if not ran:
+            raise ConfigError(f"config.yaml: key 'methods.only_on.{name}' is {list(datasets)}, none of which profile "
+                              f"{profile!r} runs (profiles.{profile}.datasets: "
+                              f"{', '.join(config['profiles'][profile]['datasets'])}); expected at least one of "
+                              f"them, or {name!r} left out of 'methods.run'")
     found: dict[str, tuple] = {}
     for name in section["run"]:
         s, cls = registry.lookup(name, section)
         found[name] = (s, cls, cls.options_from_config(name=name, config=config, profile=profile))
     sources = registry.training_sources({n: (cls, opt) for n, (_, cls, opt) in found.items() if cls.learns})
     return {n: MethodSettings(name=n, target=s.target, label=s.label, table_class=s.table_class,
-                              learns=bool(cls.learns), training_source=sources.get(n), options=opt)
+                              learns=bool(cls.learns), training_source=sources.get(n), options=opt,
+                              only_on=tuple(only_on[n]) if n in only_on else None)
             for n, (s, cls, opt) in found.items()}
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from typing import Any, Callable, ClassVar, Mapping, NamedTuple, Sequence
 
 import numpy as np
@@ -292,6 +293,7 @@ class InsWoaController(BatchedController):
                                self.geom.width_m, self.geom.height_m) for a in self.anchors]
         self.box_lo = torch.stack([lo for lo, _ in boxes])  # (B, K, 2)
         self.box_hi = torch.stack([hi for _, hi in boxes])
+        self.solve_ms: list[float] = []  # wall time of each slot's search per day of the batch
         self.generators = []
         for x in ctxs:
             g = torch.Generator()
@@ -300,7 +302,20 @@ class InsWoaController(BatchedController):
             self.generators.append(g)
 
     def act_batch(self, obs: Mapping[str, Any]) -> np.ndarray:
-        """(B, K, 3) actions of one slot for B days."""
+        """(B, K, 3) actions of one slot for B days; the search's wall time per day is recorded (day_stats)."""
+        start = time.perf_counter()
+        out = self._act(obs)
+        self.solve_ms.append(1000.0 * (time.perf_counter() - start) / out.shape[0])
+        return out
+
+    def day_stats(self) -> list[dict[str, float]]:
+        """Per day of the batch: solve_ms_median, the median over slots of the search's ms per day-slot (the batch
+        is searched as one, so every day of a batch reports the same), and solves. INS-WOA has no degradation
+        rule: every slot runs the full search."""
+        med = float(np.median(self.solve_ms)) if self.solve_ms else 0.0
+        return [{"solve_ms_median": med, "solves": float(len(self.solve_ms))} for _ in self.generators]
+
+    def _act(self, obs: Mapping[str, Any]) -> np.ndarray:
         demand = torch.as_tensor(np.asarray(obs["demand"]))
         x = demand[:, -1].reshape(demand.shape[0], -1).float()  # (B, G) the current observed map x_t
         state = fleet_state_from_obs(obs["fleet"], self.grid, self.scenario)

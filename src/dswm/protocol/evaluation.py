@@ -233,13 +233,22 @@ def day_stat_columns(controller: Controller, n_days: int) -> list[dict[str, floa
     return out
 
 
+def stat_columns(days: pl.DataFrame) -> list[str]:
+    """The controller's per-day ``stat_`` columns of a days table (STAT_PREFIX), in column order."""
+    return [c for c in days.columns if c.startswith(STAT_PREFIX)]
+
+
 def split_summary(days: pl.DataFrame) -> dict[str, float]:
-    """Per-split means of the day metrics, named ``{split}/{metric}`` (MLflow metric names)."""
+    """Per-split means of the day metrics and of the controller's ``stat_`` columns, named ``{split}/{metric}``
+    (MLflow metric names); a column with no value in a split is left out."""
     out = {}
     for split in ("id", "ood"):
         part = days.filter(pl.col("split") == split)
-        for col in ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot"):
-            out[f"{split}/{col}"] = float(part[col].mean())
+        for col in ("sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain", "plan_ms_per_slot",
+                    *stat_columns(days)):
+            mean = part[col].mean()
+            if mean is not None:
+                out[f"{split}/{col}"] = float(mean)
     return out
 
 
