@@ -115,6 +115,21 @@ def test_build_passes_the_typed_method_section(raw, settings):
     assert g.search == o.search == g.search_settings() == o.search_settings()   # one search for every BCD
 
 
+def test_a_profile_budget_overrides_the_settings_of_its_profile_only(raw):
+    cfg = copy.deepcopy(raw)
+    cfg["methods"]["ins_woa"] = {**cfg["methods"]["ins_woa"], "budgets": {"smoke": {"population": 8},
+                                                                        "paper": {"iterations": 80}}}
+    got = {p: S.resolve({**cfg, "profile": p}).methods["ins_woa"].options for p in ("smoke", "demo", "paper")}
+    base = raw["methods"]["ins_woa"]
+    assert (got["smoke"].population, got["smoke"].iterations) == (8, base["iterations"])
+    assert (got["demo"].population, got["demo"].iterations) == (base["population"], base["iterations"])
+    assert (got["paper"].population, got["paper"].iterations) == (base["population"], 80)
+    cfg["methods"]["ins_woa"]["budgets"]["smoke"] = {"popuation": 8}
+    with pytest.raises(ConfigError, match=r"methods.ins_woa \(with methods.ins_woa.budgets.smoke\): unknown key\(s\) "
+                                          r"\['popuation'\]"):
+        S.resolve({**cfg, "profile": "smoke"})
+
+
 def test_only_the_upper_bounds_are_clairvoyant_and_only_world_model_planners_learn(settings):
     classes = {n: m.controller_class for n, m in settings.methods.items()}
     assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["oracle", "perfect"]

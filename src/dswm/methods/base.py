@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
-from dswm.config import ConfigError, build
+from dswm.config import ConfigError, build, merge
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -80,12 +80,19 @@ class Controller:
         """The typed settings of method ``name`` from the validated config.yaml mapping (parse time only).
 
         The default builds :attr:`options_type` from ``methods.user.<name>.options`` for a user method, else from
-        ``methods.<name>``; a class without ``options_type`` gets None. A class whose settings live elsewhere (DSWM:
-        the ``dswm`` section, merged for the method and the profile) overrides this.
+        ``methods.<name>``; a class without ``options_type`` gets None. A built-in section may hold ``budgets``:
+        {profile: {key: value}}, the selected profile's entry overriding the section's keys (a smaller demo budget
+        is a profile of the same settings). A class whose settings live elsewhere (DSWM: the ``dswm`` section,
+        merged for the method and the profile) overrides this.
         """
         user = config["methods"].get("user", {}).get(name)
         key = f"methods.user.{name}.options" if user is not None else f"methods.{name}"
         section = dict(user.get("options", {})) if user is not None else config["methods"].get(name)
+        if user is None and isinstance(section, Mapping) and "budgets" in section:
+            section = dict(section)
+            budgets = section.pop("budgets") or {}
+            section = merge(section, budgets.get(profile))
+            key = f"methods.{name} (with methods.{name}.budgets.{profile})" if profile in budgets else key
         return cls.options_from_plain(name=name, data=section, where=key)
 
     @classmethod

@@ -166,8 +166,8 @@ class StepOutput(NamedTuple):
     sr: np.ndarray  # (B,) SR_{t+1}
     energy_j: np.ndarray  # (B,) fleet energy of the slot
     jain: np.ndarray  # (B,)
-    terminated: np.ndarray  # (B,) bool, the day is over
-    truncated: np.ndarray  # (B,) bool, always False (a day is the whole episode)
+    terminated: np.ndarray  # (B,) bool, always False: no state of the fleet ends its task
+    truncated: np.ndarray  # (B,) bool, the day is over: the episode is cut by time, so a TD target bootstraps
 
 
 class FleetCore:
@@ -266,7 +266,7 @@ class FleetCore:
         b = len(self.days)
         return StepOutput(obs=self.observe(), reward=reward.numpy(), sr=res.sr.numpy(),
                           energy_j=fleet_energy.numpy(), jain=jain.numpy(),
-                          terminated=np.full(b, done), truncated=np.zeros(b, dtype=bool))
+                          terminated=np.zeros(b, dtype=bool), truncated=np.full(b, done))
 
 
 def grid_of(tensor) -> Grid:
