@@ -125,8 +125,8 @@ def test_a_profile_budget_overrides_the_settings_of_its_profile_only(raw):
     assert (got["demo"].population, got["demo"].iterations) == (base["population"], base["iterations"])
     assert (got["paper"].population, got["paper"].iterations) == (base["population"], 80)
     cfg["methods"]["ins_woa"]["budgets"]["smoke"] = {"popuation": 8}
-    with pytest.raises(ConfigError, match=r"methods.ins_woa \(with methods.ins_woa.budgets.smoke\): unknown key\(s\) "
-                                          r"\['popuation'\]"):
+    with pytest.raises(ConfigError, match=r"unknown key 'methods.ins_woa.budgets.smoke.popuation' \(expected one of "
+                                          r"iterations, population, region_margin_cells\); did you mean 'population'"):
         S.resolve({**cfg, "profile": "smoke"})
 
 
