@@ -210,7 +210,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
                                      progress_interval_s=display.progress_mininterval_s)
         evaluation.write_days(result.days, days_out, record, settings_record)
         save_npz(trajectory_out, **result.trajectories)
-        logged = DAY_METRICS + evaluation.stat_columns(result.days)
+        logged = [*DAY_METRICS, *evaluation.stat_columns(result.days)]
         for row in result.days.iter_rows(named=True):
             run.log_metrics({f"day/{k}": row[k] for k in logged if row[k] is not None}, step=row["day"])
         run.log_metrics(evaluation.split_summary(result.days))
