@@ -15,6 +15,7 @@ from dswm.methods.classical import GreedyController, OracleController, StaticCon
 from conftest import ROOT
 
 LEARNERS = ["dswm", "dswm_wo_unc", "dswm_wo_dec"]
+BASELINE_LEARNERS = ("ppo", "sac", "maddpg", "tdmpc")  # each trains alone: no other method shares its training
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +29,10 @@ def settings(raw):
 
 
 def sources(config):
-    """The training sources of the learning methods, DSWM+ left out (it shares dswm's in every case here)."""
-    return {m: src for m, src in S.resolve(config).training_sources().items() if m != "dswm_plus"}
+    """The training sources of the learning methods but the baselines, DSWM+ left out (it shares dswm's in every case here); the
+    learning baselines (ppo, sac, ...) are their own training sources (test below)."""
+    return {m: src for m, src in S.resolve(config).training_sources().items()
+            if m != "dswm_plus" and m not in BASELINE_LEARNERS}
 
 
 @pytest.fixture
@@ -130,11 +133,14 @@ def test_a_profile_budget_overrides_the_settings_of_its_profile_only(raw):
         S.resolve({**cfg, "profile": "smoke"})
 
 
-def test_only_the_upper_bounds_are_clairvoyant_and_only_world_model_planners_learn(settings):
+def test_only_the_upper_bounds_are_clairvoyant_and_only_world_models_and_rl_methods_learn(settings):
     classes = {n: m.controller_class for n, m in settings.methods.items()}
     assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["oracle", "perfect"]
-    assert sorted(n for n, m in settings.methods.items() if m.learns) == ["dswm", "dswm_plus", "dswm_wo_dec",
-                                                                         "dswm_wo_unc"]
+    learners = sorted(n for n, m in settings.methods.items() if m.learns)
+    assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg", "tdmpc"]
+                              if "tdmpc" in settings.methods else
+                              ["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg"])
+    assert {settings.methods[m].table_class for m in ("ppo", "sac", "maddpg")} == {"model-free RL", "MARL"}
 
 
 def test_unregistered_method_names_the_key_and_the_expected_form(raw):
@@ -195,7 +201,7 @@ def test_dswm_wo_unc_and_dswm_plus_share_the_training_of_dswm_and_dswm_wo_dec_tr
     assert raw["methods"]["run"][:3] == LEARNERS
     s = S.resolve(cfg)
     assert s.training_sources() == {"dswm": "dswm", "dswm_wo_unc": "dswm", "dswm_wo_dec": "dswm_wo_dec",
-                                    "dswm_plus": "dswm"}
+                                    "dswm_plus": "dswm", **{m: m for m in s.methods if m in BASELINE_LEARNERS}}
     ident = {m: registry.training_identity(s.methods[m].controller_class, s.methods[m].options) for m in LEARNERS}
     assert ident["dswm"] == ident["dswm_wo_unc"] != ident["dswm_wo_dec"]
     plus = s.methods["dswm_plus"]

@@ -39,6 +39,7 @@ def methods_on(ds):
 
 
 PAIRS = sorted((d, m) for d in DATASETS for m in methods_on(d))  # (dataset, method) of every evaluate job
+LEARNERS = ("ppo", "sac", "maddpg", "tdmpc")  # the learning baselines, each its own training source
 CONTRACT_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                     "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
                     "dataset"]  # docs/ARCHITECTURE.md, "Results"
@@ -163,22 +164,24 @@ def test_training_manifests_hash_what_training_read_and_wrote_and_the_audit_veri
 
     sources = training_sources(run)
     trained = sorted(set(sources.values()))
-    assert trained == ["dswm", "dswm_wo_dec"]  # dswm_wo_unc evaluates dswm's model
+    assert trained == sorted(["dswm", "dswm_wo_dec", *LEARNERS])  # dswm_wo_unc evaluates dswm's model
     for ds in DATASETS:
         assert not (run / "results" / ds / "dswm_wo_unc" / "seed0" / "model.pt").exists()
-        for m in trained:
+        for m in [m for m in trained if m in methods_on(ds)]:
             d = run / "results" / ds / m / "seed0"
             man = json.loads((d / "train_manifest.json").read_text())
             assert man["model"] == f"results/{ds}/{m}/seed0/model.pt"
             assert man["model_sha256"] == sha256_file(d / "model.pt")
-            assert man["checkpoint"] == f"results/{ds}/{m}/seed0/train/checkpoint.pt"
-            assert man["checkpoint_sha256"] == sha256_file(d / "train" / "checkpoint.pt")
+            ckpt = Path(man["checkpoint"])
+            assert ckpt.parent.as_posix() == f"results/{ds}/{m}/seed0/train" and ckpt.stem == "checkpoint"
+            assert man["checkpoint_sha256"] == sha256_file(run / ckpt)
+            assert man["n_transitions"] == man["transitions_per_day_episode"] * len(man["days"]) > 0
             assert man["data_files_read"] == [
                 {"path": f"results/data/{ds}/{name}", "sha256": sha256_file(run / "results" / "data" / ds / name)}
                 for name in ("demand.parquet", "meta.json")]
     report = json.loads((run / "results" / "audit" / "report.json").read_text())
     chk = next(c for c in report["checks"] if c["id"] == "protocol.checkpoints")
-    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in trained)
+    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds, m in PAIRS if m in trained)
 
 
 def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifies_it(run):
@@ -207,16 +210,52 @@ def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifi
         assert wo_unc["model_sha256"] == sha256_file(run / "results" / ds / "dswm" / "seed0" / "model.pt")
     train_runs = client.search_runs([runs[0].info.experiment_id], filter_string="tags.stage = 'train'")
     assert sorted((r.data.tags["dataset"], r.data.tags["method"]) for r in train_runs) == \
-        sorted((d, m) for d in DATASETS for m in set(sources.values()))
+        sorted((d, m) for d, m in PAIRS if m in set(sources.values()))
     for r in train_runs:  # the train run names every method whose evaluation loads its model
         src = r.data.tags["method"]
         assert r.data.tags["evaluated_as"] == ",".join(m for m in sources if sources[m] == src)
-    assert {r.data.tags["evaluated_as"] for r in train_runs} == {"dswm,dswm_wo_unc,dswm_plus", "dswm_wo_dec"}
+    assert {r.data.tags["evaluated_as"] for r in train_runs} == {"dswm,dswm_wo_unc,dswm_plus", "dswm_wo_dec",
+                                                                 *LEARNERS}
+    for r in train_runs:  # every learning method's training curve is in MLflow
+        curves = [k for k in r.data.metrics if k not in ("train/n_transitions", "train/steps")]
+        assert curves and len(client.get_metric_history(r.info.run_id, curves[0])) > 1, r.data.tags["method"]
     report = json.loads((run / "results" / "audit" / "report.json").read_text())
     chk = next(c for c in report["checks"] if c["id"] == "protocol.evaluated_models")
-    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds in DATASETS for m in sources)
+    assert chk["passed"] and sorted(chk["evidence"]) == sorted(f"{ds}/{m}/seed0" for ds, m in PAIRS if m in sources)
     assert chk["evidence"]["milan/dswm_wo_unc/seed0"]["found"] == \
         sha256_file(run / "results" / "milan" / "dswm" / "seed0" / "model.pt")
+
+
+def test_one_test_day_in_any_learning_method_s_training_record_turns_the_audit_red(run, tmp_path):
+    """The audit's proof that no learning method saw a test day, on the manifests the smoke run's real training
+    wrote: one test-day episode added to one method's record fails protocol.training_days, naming that file."""
+    sources = training_sources(run)
+    meta = json.loads((run / "results" / "data" / "milan" / "meta.json").read_text())
+    test_day = next(d for d in meta["days"] if d["split"] == "test")
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    for method in sorted(set(sources.values())):
+        path = run / "results" / "milan" / method / "seed0" / "train_manifest.json"
+        original = path.read_text()
+        man = json.loads(original)
+        assert man["days"] and man["n_transitions"] == man["transitions_per_day_episode"] * len(man["days"])
+        man["days"].append(test_day["index"])
+        man["day_labels"].append(test_day["label"])
+        man["n_transitions"] += man["transitions_per_day_episode"]
+        try:
+            path.write_text(json.dumps(man))
+            out = tmp_path / method
+            proc = subprocess.run([sys.executable, "-m", "audits", "--root", str(run), "--config",
+                                   str(run / "config.yaml"), "--profile", "smoke", "--out", str(out)],
+                                  cwd=run, env=env, capture_output=True, text=True, timeout=600)
+        finally:
+            path.write_text(original)
+        assert proc.returncode == 1, method
+        report = json.loads((out / "report.json").read_text())
+        chk = next(c for c in report["checks"] if c["id"] == "protocol.training_days")
+        assert not chk["passed"], method
+        assert any(f"results/milan/{method}/seed0/train_manifest.json" in m and test_day["label"] in m
+                   and "holds a test day" in m for m in chk["failures"]), chk["failures"]
+        assert [c["id"] for c in report["checks"] if not c["passed"]] == ["protocol.training_days"], method
 
 
 def evaluate_runs(work):
@@ -235,6 +274,17 @@ def test_every_job_is_one_finished_mlflow_run_and_a_rerun_adds_no_duplicate(run)
         assert r.data.params["eval_days.id"] == "1" and r.data.params["method.name"] == r.data.tags["method"]
         assert {"id/sr_mean", "ood/sr_mean", "day/sr_mean"} <= set(r.data.metrics)
         assert "days.parquet" in [a.path for a in client.list_artifacts(r.info.run_id)]
+    # a controller's per-day stats (stat_ columns of days.parquet) are metrics of its run too
+    stats = {r.data.tags["dataset"]: r.data.metrics for r in runs if r.data.tags["method"] == "jtoratc"}
+    days = pl.read_parquet(run / "results" / "milan" / "jtoratc" / "seed0" / "days.parquet")
+    assert list(stats) == ["milan"]
+    # smoke's 120 ms budget per slot: a full solve exceeds it, so the degradation rule holds the plan between solves
+    assert ((days["stat_solves"] + days["stat_held_slots"]) == 143).all() and (days["stat_over_budget_solves"] >= 1).all()
+    assert (days["stat_degraded_slots"] >= days["stat_held_slots"]).all() and (days["stat_held_slots"] > 0).all()
+    assert stats["milan"]["id/stat_solve_ms_median"] == pytest.approx(days["stat_solve_ms_median"][0])
+    assert stats["milan"]["ood/stat_degraded_slots"] == days["stat_degraded_slots"][1]
+    assert client.get_metric_history(next(r.info.run_id for r in runs if r.data.tags["method"] == "jtoratc"),
+                                     "day/stat_solves")[0].value == days["stat_solves"][0]
     proc = snakemake(run, "--cores", "1", "--force", "results/yjmob/static/seed0/days.parquet")
     assert proc.returncode == 0, proc.stderr[-3000:]
     _, again = evaluate_runs(run)

@@ -1,0 +1,435 @@
+"""Model-free RL with Stable-Baselines3: ``ppo`` and ``sac`` (the paper's "model-free RL" class).
+
+Both learn an MLP policy on the one flat observation (:mod:`dswm.methods.rl.spaces`) over the TRAINING-days core
+through :class:`dswm.methods.rl.vec_env.FleetVecEnv`; the algorithms, their losses and their updates are SB3's,
+the project supplies the environment, the settings (config.yaml ``methods.ppo`` / ``methods.sac``) and the files.
+
+* Budget: ``day_episodes`` whole day-episodes of 143 transitions, in rounds of ``n_envs`` days stepped together
+  (``day_episodes`` is a multiple of ``n_envs``); each round is one ``learn`` call. PPO's rollout is exactly one
+  round (``n_steps`` = 143): every rollout ends at the day's truncation, where SB3 adds gamma * V(terminal
+  observation) to the last reward. SAC's replay buffer keeps ``handle_timeout_termination`` (its default), so a
+  day's end is stored as a timeout and its TD target bootstraps.
+* Checkpoint ``run_dir/checkpoint.zip``: SB3's own ``save`` of the algorithm (weights, optimizers, entropy
+  coefficient, counters, last observation) plus the members ``dswm/meta.json`` (what the model acts on),
+  ``dswm/state.pt`` (python, numpy and torch RNG states, the action space's RNG, the day draws and the record of
+  days, the history, the rounds done and the run's identity) and, for SAC, ``dswm/replay_buffer.pkl``. It is
+  written atomically every ``checkpoint_every`` rounds and at the end. A rerun of ``fit`` in the same run_dir
+  resumes from it when the identity matches: same class, seed, settings other than ``day_episodes`` and
+  ``checkpoint_every``, SB3 version and training inputs (:func:`training_inputs_hash`), and no more rounds done
+  than asked; a resumed run reproduces the uninterrupted one exactly (the same next losses, the same days).
+* Model file (``save``/``load``): SB3's zip with ``dswm/meta.json``, no replay buffer: what acting needs.
+* Seeds: SB3's ``seed=`` (weights, sampling, minibatches), the env's day draws (``FleetVecEnv.seed``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import pickle
+import random
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, ClassVar, Mapping, Sequence
+
+import numpy as np
+import stable_baselines3
+import torch
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+
+from dswm.config import ConfigError, stable_hash, to_plain
+from dswm.methods.base import Controller, DayContext
+from dswm.methods.rl.logger import HistoryWriter, history_logger
+from dswm.methods.rl.spaces import DEMAND_TRANSFORM, fleet_action, flat_observation, observation_dim
+from dswm.methods.rl.vec_env import FleetVecEnv
+from prep.atomic import atomic_path
+
+CHECKPOINT = "checkpoint.zip"
+META_MEMBER = "dswm/meta.json"
+STATE_MEMBER = "dswm/state.pt"
+BUFFER_MEMBER = "dswm/replay_buffer.pkl"
+MAX_HISTORY_POINTS = 200
+"""At most this many points in a training history (a point averages several rounds when there are more)."""
+RESUME_FREE = ("day_episodes", "checkpoint_every")
+"""Settings a checkpoint may differ in and still resume (a longer budget continues a shorter run)."""
+
+
+# ---- settings --------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SB3Settings:
+    """Settings shared by the SB3 learners (config.yaml ``methods.ppo`` / ``methods.sac``)."""
+
+    section: ClassVar[str] = "methods"
+
+    n_envs: int
+    """Training days stepped together by one core call; a round is n_envs day-episodes."""
+    day_episodes: int
+    """Training budget in whole day-episodes of 143 transitions, a multiple of n_envs."""
+    net_arch: tuple[int, ...]
+    """Hidden-layer widths of the actor's MLP and of each critic's (separate networks)."""
+    learning_rate: float
+    """Adam's learning rate (constant) of every network."""
+    gamma: float
+    """Discount per slot."""
+    batch_size: int
+    """Minibatch size of a gradient step."""
+    checkpoint_every: int
+    """Rounds between checkpoints (one is also written at the end)."""
+
+    def _fail(self, key: str, expected: str) -> None:
+        raise ConfigError(f"config key {self.section}.{key}: expected {expected}, found {getattr(self, key)!r}")
+
+    def __post_init__(self):
+        for key in ("n_envs", "day_episodes", "batch_size", "checkpoint_every"):
+            if getattr(self, key) < 1:
+                self._fail(key, "an integer >= 1")
+        if self.day_episodes % self.n_envs:
+            self._fail("day_episodes", f"a multiple of n_envs = {self.n_envs} (training budgets are whole rounds)")
+        if not self.net_arch or any(w < 1 for w in self.net_arch):
+            self._fail("net_arch", "a non-empty list of layer widths >= 1")
+        if not self.learning_rate > 0:
+            self._fail("learning_rate", "a number > 0")
+        if not 0 < self.gamma <= 1:
+            self._fail("gamma", "a number in (0, 1]")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PPOSettings(SB3Settings):
+    """PPO (``methods.ppo``): one rollout is one round, n_envs x 143 transitions; batch_size divides it."""
+
+    section: ClassVar[str] = "methods.ppo"
+
+    n_epochs: int
+    """Passes over each rollout."""
+    gae_lambda: float
+    """GAE's lambda."""
+    clip_range: float
+    """PPO's ratio clipping."""
+    ent_coef: float
+    """Weight of the entropy bonus."""
+    vf_coef: float
+    """Weight of the value loss."""
+    max_grad_norm: float
+    """Gradient-norm clipping."""
+    log_std_init: float
+    """Initial log std of the Gaussian policy (state-independent, learned)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.n_epochs < 1:
+            self._fail("n_epochs", "an integer >= 1")
+        for key in ("gae_lambda",):
+            if not 0 <= getattr(self, key) <= 1:
+                self._fail(key, "a number in [0, 1]")
+        for key in ("clip_range", "vf_coef", "max_grad_norm"):
+            if not getattr(self, key) > 0:
+                self._fail(key, "a number > 0")
+        if self.ent_coef < 0:
+            self._fail("ent_coef", "a number >= 0")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SACSettings(SB3Settings):
+    """SAC (``methods.sac``)."""
+
+    section: ClassVar[str] = "methods.sac"
+
+    buffer_size: int
+    """Replay capacity in transitions (each holds two flat observations: memory ~ 8 D bytes per transition)."""
+    learning_starts: int
+    """Transitions of uniform random actions before the first update."""
+    tau: float
+    """Polyak rate of the target critics."""
+    train_freq: int
+    """Vectorized steps (n_envs transitions each) between updates."""
+    gradient_steps: int
+    """Gradient steps per update."""
+    ent_coef_init: float
+    """Initial entropy coefficient."""
+    auto_entropy: bool
+    """Learn the entropy coefficient towards SB3's target entropy -dim(action) (else keep ent_coef_init)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        for key in ("buffer_size", "train_freq", "gradient_steps"):
+            if getattr(self, key) < 1:
+                self._fail(key, "an integer >= 1")
+        if self.learning_starts < 0:
+            self._fail("learning_starts", "an integer >= 0")
+        if self.buffer_size < self.batch_size:
+            self._fail("buffer_size", f"at least batch_size = {self.batch_size}")
+        if not 0 < self.tau <= 1:
+            self._fail("tau", "a number in (0, 1]")
+        if not self.ent_coef_init > 0:
+            self._fail("ent_coef_init", "a number > 0")
+
+
+# ---- helpers ---------------------------------------------------------------------------------------------
+def training_inputs_hash(core, day_ids: np.ndarray) -> str:
+    """Hash of what a training run reads besides its settings: the training-day demand, day ids and labels, the
+    grid and the scenario of ``core``."""
+    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
+    return stable_hash({"demand_sha256": demand, "day_ids": np.asarray(day_ids).tolist(),
+                        "day_labels": list(core.day_labels), "grid": dataclasses.asdict(core.grid),
+                        "scenario": dataclasses.asdict(core.scenario)})
+
+
+def _rng_states(model: BaseAlgorithm) -> dict:
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+            "action_space": model.action_space.np_random.bit_generator.state}
+
+
+def _set_rng_states(model: BaseAlgorithm, states: Mapping[str, Any]) -> None:
+    random.setstate(states["python"])
+    np.random.set_state(states["numpy"])
+    torch.set_rng_state(states["torch"])
+    if states.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+    model.action_space.np_random.bit_generator.state = states["action_space"]
+
+
+class _DumpEachUpdate(BaseCallback):
+    """Dumps SB3's logger after every update, so the history averages every update's losses."""
+
+    def __init__(self, n_updates: int):
+        super().__init__(verbose=0)
+        self.seen = n_updates
+
+    def flush(self, model: BaseAlgorithm) -> None:
+        if model._n_updates != self.seen:
+            model.logger.dump(model.num_timesteps)
+            self.seen = model._n_updates
+
+    def _on_step(self) -> bool:
+        self.flush(self.model)
+        return True
+
+
+# ---- controllers -----------------------------------------------------------------------------------------
+class SB3Controller(Controller):
+    """An SB3 algorithm on the flat observation; subclasses name the algorithm and its keyword arguments."""
+
+    learns = True
+    batched = True
+    algorithm: ClassVar[type[BaseAlgorithm]]
+
+    def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: Any = None):
+        super().__init__(name=name, seed=seed, device=device, options=options)
+        self.model: BaseAlgorithm | None = None
+        self.meta: dict | None = None
+
+    # ---- building ----------------------------------------------------------------------------------------
+    def algorithm_kwargs(self, horizon: int) -> dict:
+        """SB3 constructor arguments from the settings (``horizon``: decisions per day)."""
+        raise NotImplementedError
+
+    def check_fit(self, horizon: int) -> None:
+        """Settings checks that need the day's length."""
+
+    def build_algorithm(self, venv: FleetVecEnv) -> BaseAlgorithm:
+        """A fresh SB3 algorithm on ``venv``, seeded with the controller's seed."""
+        return self.algorithm("MlpPolicy", venv, seed=self.seed, device=self.device, verbose=0,
+                              **self.algorithm_kwargs(venv.horizon))
+
+    def gradient_steps(self, model: BaseAlgorithm) -> int:
+        """Optimizer steps of the policy so far."""
+        return int(model._n_updates)
+
+    def identity(self, train_core, day_ids) -> str:
+        """What a checkpoint must match to resume (settings but the budget, seed, inputs, SB3 version)."""
+        settings = {k: v for k, v in to_plain(self.options).items() if k not in RESUME_FREE}
+        return stable_hash({"class": f"{type(self).__module__}:{type(self).__name__}", "settings": settings,
+                            "seed": self.seed, "sb3": stable_baselines3.__version__,
+                            "inputs": training_inputs_hash(train_core, day_ids)})
+
+    def _meta(self, grid, scenario) -> dict:
+        return {"method": self.name, "class": f"{type(self).__module__}:{type(self).__name__}",
+                "algorithm": self.algorithm.__name__, "grid": {"rows": grid.rows, "cols": grid.cols},
+                "n_uavs": scenario.n_uavs, "obs_dim": observation_dim(grid.rows, grid.cols, scenario),
+                "scenario_hash": scenario.hash(), "demand_transform": DEMAND_TRANSFORM, "seed": self.seed}
+
+    # ---- training ----------------------------------------------------------------------------------------
+    def fit(self, train_core, *, run_dir) -> dict:
+        """Train on the TRAINING-days core; checkpoint under run_dir; return the training manifest."""
+        s = self.options
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        horizon = train_core.scenario.slots_per_day - 1
+        self.check_fit(horizon)
+        venv = FleetVecEnv(train_core, n_envs=s.n_envs, seed=self.seed)
+        ckpt = run_dir / CHECKPOINT
+        identity = self.identity(train_core, venv.day_ids)
+        rounds = s.day_episodes // s.n_envs
+        self.meta = self._meta(train_core.grid, train_core.scenario)
+        resumed = self._resume(ckpt, venv, identity, rounds)
+        if resumed is None:
+            model, writer, done = self.build_algorithm(venv), HistoryWriter(), 0
+        else:
+            model, writer, done = resumed
+        model.set_logger(history_logger(writer))
+        every = max(1, math.ceil(rounds / MAX_HISTORY_POINTS))
+        dumps = _DumpEachUpdate(model._n_updates)
+        for r in range(done, rounds):
+            model.learn(total_timesteps=s.n_envs * horizon, callback=dumps, log_interval=None,
+                        reset_num_timesteps=False, progress_bar=False)
+            dumps.flush(model)
+            if (r + 1) % every == 0 or r + 1 == rounds:
+                ret, sr, n = venv.drain_finished()
+                if n:
+                    writer.write({"rollout/ep_rew_mean": ret, "rollout/ep_sr_mean": sr}, {}, model.num_timesteps)
+                writer.point(model.num_timesteps)
+            if (r + 1) % s.checkpoint_every == 0 or r + 1 == rounds:
+                self._write_checkpoint(ckpt, model, venv, writer, r + 1, identity)
+        if model.num_timesteps != horizon * len(venv.episodes) or len(venv.episodes) != s.day_episodes:
+            raise RuntimeError(f"{self.name}: {model.num_timesteps} transitions over {len(venv.episodes)} finished "
+                               f"day-episodes; expected {s.day_episodes} whole days of {horizon}")
+        self.model = model
+        days = venv.episode_days()
+        return {"days": days, "day_labels": [train_core.day_labels[d] for d in venv.episodes],
+                "transitions_per_day_episode": horizon, "n_transitions": horizon * len(days),
+                "steps": self.gradient_steps(model), "checkpoint": str(ckpt),
+                "checkpoint_written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ckpt.stat().st_mtime)),
+                "read_test_data": False, "history": writer.history}
+
+    def _write_checkpoint(self, path: Path, model: BaseAlgorithm, venv: FleetVecEnv, writer: HistoryWriter,
+                          rounds_done: int, identity: str) -> None:
+        state = {"identity": identity, "rounds_done": rounds_done, "rng": _rng_states(model),
+                 "env": venv.state_dict(), "history": writer.history}
+        blob = io.BytesIO()
+        torch.save(state, blob)
+        with atomic_path(path) as tmp:
+            self._save_zip(tmp, model)
+            with zipfile.ZipFile(tmp, "a") as zf:
+                zf.writestr(STATE_MEMBER, blob.getvalue())
+                if getattr(model, "replay_buffer", None) is not None:
+                    with zf.open(BUFFER_MEMBER, "w", force_zip64=True) as fh:
+                        pickle.dump(model.replay_buffer, fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def _resume(self, path: Path, venv: FleetVecEnv, identity: str, rounds: int):
+        """(model, writer, rounds done) from a matching checkpoint, else None (training starts afresh)."""
+        if not path.is_file():
+            return None
+        try:
+            with zipfile.ZipFile(path) as zf:
+                state = torch.load(io.BytesIO(zf.read(STATE_MEMBER)), weights_only=False)
+        except (zipfile.BadZipFile, KeyError, OSError, pickle.UnpicklingError, RuntimeError):
+            return None
+        if state.get("identity") != identity or state.get("rounds_done", rounds + 1) > rounds:
+            return None
+        with path.open("rb") as fh:
+            model = self.algorithm.load(fh, env=venv, device=self.device, force_reset=False)
+        if getattr(model, "replay_buffer", None) is not None:
+            with zipfile.ZipFile(path) as zf, zf.open(BUFFER_MEMBER) as fh:
+                model.replay_buffer = pickle.load(fh)
+            model.replay_buffer.device = model.device
+        obs = venv.load_state_dict(state["env"])
+        if not np.array_equal(obs, model._last_obs):
+            raise RuntimeError(f"{path}: the checkpoint's last observation does not match its round's days")
+        _set_rng_states(model, state["rng"])
+        return model, HistoryWriter(state["history"]), int(state["rounds_done"])
+
+    # ---- files -------------------------------------------------------------------------------------------
+    def _save_zip(self, tmp: Path, model: BaseAlgorithm) -> None:
+        with open(tmp, "wb") as fh:  # a file object: SB3 adds no ".zip" to it
+            model.save(fh)
+        with zipfile.ZipFile(tmp, "a") as zf:
+            zf.writestr(META_MEMBER, json.dumps(self.meta, sort_keys=True))
+
+    def save(self, path) -> None:
+        """SB3's zip of the trained algorithm plus ``dswm/meta.json``, written atomically at ``path`` as named."""
+        if self.model is None:
+            raise RuntimeError(f"{self.name}: nothing to save, the model is not trained")
+        with atomic_path(path) as tmp:
+            self._save_zip(tmp, self.model)
+
+    def load(self, path) -> None:
+        """Read what :meth:`save` (or a checkpoint) wrote; the process's RNG states are left as they were."""
+        path = Path(path)
+        try:
+            with zipfile.ZipFile(path) as zf:
+                meta = json.loads(zf.read(META_MEMBER))
+        except (zipfile.BadZipFile, KeyError) as err:
+            raise ValueError(f"{path}: not a {self.name} model file (expected an SB3 zip with {META_MEMBER})") from err
+        if meta.get("algorithm") != self.algorithm.__name__:
+            raise ValueError(f"{path}: a {meta.get('algorithm')} model, expected {self.algorithm.__name__}")
+        states = (random.getstate(), np.random.get_state(), torch.get_rng_state())
+        with path.open("rb") as fh:
+            self.model = self.algorithm.load(fh, device=self.device)
+        random.setstate(states[0])
+        np.random.set_state(states[1])
+        torch.set_rng_state(states[2])
+        self.meta = meta
+
+    # ---- acting ------------------------------------------------------------------------------------------
+    def reset_batch(self, ctxs: Sequence[DayContext]) -> None:
+        if self.model is None:
+            raise RuntimeError(f"{self.name}: reset_batch() before fit() or load()")
+        for ctx in ctxs:
+            g, sc = ctx.grid, ctx.scenario
+            if (g.rows, g.cols) != (self.meta["grid"]["rows"], self.meta["grid"]["cols"]):
+                raise ValueError(f"{self.name}: model trained on a {self.meta['grid']['rows']}x"
+                                 f"{self.meta['grid']['cols']} grid, day {ctx.label} of {ctx.dataset} has "
+                                 f"{g.rows}x{g.cols}")
+            if sc.hash() != self.meta["scenario_hash"]:
+                raise ValueError(f"{self.name}: model trained under scenario hash {self.meta['scenario_hash']}, day "
+                                 f"{ctx.label} of {ctx.dataset} is evaluated under {sc.hash()}; retrain it")
+
+    def reset(self, ctx: DayContext) -> None:
+        self.reset_batch([ctx])
+
+    def act_batch(self, obs: Mapping[str, Any]) -> np.ndarray:
+        """(B, K, 3): the policy's deterministic action on the flat observation, clipped to [-1, 1]."""
+        flat = flat_observation(obs)
+        action, _ = self.model.predict(flat, deterministic=True)
+        return np.clip(fleet_action(action, self.meta["n_uavs"]), -1.0, 1.0)
+
+    def act(self, obs: Mapping[str, Any]) -> np.ndarray:
+        return self.act_batch({k: np.asarray(v)[None] for k, v in obs.items()})[0]
+
+
+class PPOController(SB3Controller):
+    """SB3's PPO with a Gaussian MLP policy and an MLP value function."""
+
+    algorithm = PPO
+    options_type = PPOSettings
+
+    def check_fit(self, horizon: int) -> None:
+        s = self.options
+        if (s.n_envs * horizon) % s.batch_size:
+            raise ConfigError(f"config key {s.section}.batch_size: expected a divisor of the rollout n_envs x "
+                              f"{horizon} = {s.n_envs * horizon}, found {s.batch_size}")
+
+    def algorithm_kwargs(self, horizon: int) -> dict:
+        s = self.options
+        arch = list(s.net_arch)
+        return {"learning_rate": s.learning_rate, "n_steps": horizon, "batch_size": s.batch_size,
+                "n_epochs": s.n_epochs, "gamma": s.gamma, "gae_lambda": s.gae_lambda, "clip_range": s.clip_range,
+                "ent_coef": s.ent_coef, "vf_coef": s.vf_coef, "max_grad_norm": s.max_grad_norm,
+                "policy_kwargs": {"net_arch": {"pi": arch, "vf": list(arch)}, "log_std_init": s.log_std_init}}
+
+    def gradient_steps(self, model: BaseAlgorithm) -> int:
+        """SB3 counts epochs in ``_n_updates``; each epoch is rollout / batch_size minibatch steps."""
+        s = self.options
+        return int(model._n_updates) * (model.n_steps * s.n_envs // s.batch_size)
+
+
+class SACController(SB3Controller):
+    """SB3's SAC with a squashed-Gaussian MLP actor and two MLP critics."""
+
+    algorithm = SAC
+    options_type = SACSettings
+
+    def algorithm_kwargs(self, horizon: int) -> dict:
+        s = self.options
+        arch = list(s.net_arch)
+        return {"learning_rate": s.learning_rate, "buffer_size": s.buffer_size, "learning_starts": s.learning_starts,
+                "batch_size": s.batch_size, "tau": s.tau, "gamma": s.gamma, "train_freq": (s.train_freq, "step"),
+                "gradient_steps": s.gradient_steps,
+                "ent_coef": f"auto_{s.ent_coef_init}" if s.auto_entropy else s.ent_coef_init,
+                "optimize_memory_usage": False, "replay_buffer_kwargs": {"handle_timeout_termination": True},
+                "policy_kwargs": {"net_arch": {"pi": arch, "qf": list(arch)}}}
