@@ -137,10 +137,9 @@ def test_only_the_upper_bounds_are_clairvoyant_and_only_world_models_and_rl_meth
     classes = {n: m.controller_class for n, m in settings.methods.items()}
     assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["oracle", "perfect"]
     learners = sorted(n for n, m in settings.methods.items() if m.learns)
-    assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg", "tdmpc"]
-                              if "tdmpc" in settings.methods else
-                              ["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg"])
-    assert {settings.methods[m].table_class for m in ("ppo", "sac", "maddpg")} == {"model-free RL", "MARL"}
+    assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg", "tdmpc"])
+    assert [settings.methods[m].table_class for m in ("ppo", "sac", "maddpg", "tdmpc")] == \
+        ["model-free RL", "model-free RL", "MARL", "model-based"]
 
 
 def test_unregistered_method_names_the_key_and_the_expected_form(raw):

@@ -1,0 +1,121 @@
+"""TOLD, TD-MPC's task-oriented latent dynamics model (Hansen et al. 2022), for the UAV fleet.
+
+* encoder h(o) -> z: the observation o_t = (x_{t-w..t}, fleet (K, 7), time (2,)) of every method;
+* latent dynamics d(z, a) -> z', reward R(z, a), twin action-values Q1, Q2(z, a) and a policy pi(z) in [-1, 1]^A.
+An action is the whole fleet's move flattened, A = 3K.
+
+Fixed scaling of the demand (no statistic of the data): the encoder reads log(1 + x) of the normalized maps
+(``dswm.sim.core`` serves maps divided by the training 99th percentile, so values are mostly in [0, ~3] and the
+log keeps hotspots from dominating). The fleet enters twice: its features through an MLP, and a map of where the
+active UAVs are (a Gaussian bump of one cell's width per UAV) as one more conv channel beside the demand, so the
+convs see UAVs and demand on the same grid.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from dswm.sim.core import FLEET_FEATURES
+
+ACTIVE_FEATURE = FLEET_FEATURES.index("active")
+
+
+def mlp(inp: int, hidden: int, out: int) -> nn.Sequential:
+    """Two ELU hidden layers."""
+    return nn.Sequential(nn.Linear(inp, hidden), nn.ELU(), nn.Linear(hidden, hidden), nn.ELU(),
+                         nn.Linear(hidden, out))
+
+
+def q_head(inp: int, hidden: int) -> nn.Sequential:
+    """TD-MPC's Q network: a LayerNorm and tanh after the first layer keep the input scale of z in check."""
+    return nn.Sequential(nn.Linear(inp, hidden), nn.LayerNorm(hidden), nn.Tanh(), nn.Linear(hidden, hidden),
+                         nn.ELU(), nn.Linear(hidden, 1))
+
+
+def fleet_map(fleet: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
+    """Where the active UAVs are, on the grid: sum over active UAVs of exp(-d^2 / 2), d in cells.
+
+    Args:
+        fleet: (N, K, 7) fleet features (positions as fractions of the area's width and height).
+    Returns:
+        (N, rows, cols).
+    """
+    x = fleet[..., 0] * cols - 0.5                                        # (N, K) in column units
+    y = fleet[..., 1] * rows - 0.5                                        # row 0 is the southern edge
+    c = torch.arange(cols, dtype=fleet.dtype, device=fleet.device)
+    r = torch.arange(rows, dtype=fleet.dtype, device=fleet.device)
+    gx = torch.exp(-0.5 * (c - x.unsqueeze(-1)) ** 2)                     # (N, K, C)
+    gy = torch.exp(-0.5 * (r - y.unsqueeze(-1)) ** 2)                     # (N, K, R)
+    return torch.einsum("nk,nkr,nkc->nrc", fleet[..., ACTIVE_FEATURE], gy, gx)
+
+
+class Encoder(nn.Module):
+    """h(o_t) -> z: two stride-2 convs over [log1p(demand window), fleet map], then an MLP with the fleet and time."""
+
+    def __init__(self, *, window: int, rows: int, cols: int, n_uavs: int, channels: int, hidden: int, latent: int):
+        super().__init__()
+        self.rows, self.cols = rows, cols
+        c = channels
+        self.conv = nn.Sequential(nn.Conv2d(window + 1, c, 3, stride=2, padding=1), nn.ELU(),
+                                  nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.ELU(), nn.Flatten())
+        conv_out = 2 * c * ((rows + 3) // 4) * ((cols + 3) // 4)
+        self.head = mlp(conv_out + n_uavs * len(FLEET_FEATURES) + 2, hidden, latent)
+
+    def forward(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """Args: demand (N, w+1, R, C) normalized maps, fleet (N, K, 7), time (N, 2).  Returns: z (N, latent)."""
+        img = torch.cat([torch.log1p(demand.clamp_min(0.0)), fleet_map(fleet, self.rows, self.cols).unsqueeze(1)], 1)
+        return self.head(torch.cat([self.conv(img), fleet.flatten(1), time], -1))
+
+
+class TOLD(nn.Module):
+    """The five TD-MPC components on one latent space (see the module docstring)."""
+
+    def __init__(self, *, window: int, rows: int, cols: int, n_uavs: int, latent: int, hidden: int,
+                 channels: int):
+        """Args: window: w+1 maps per observation; rows, cols: the grid; n_uavs: K; latent, hidden, channels: sizes."""
+        super().__init__()
+        self.rows, self.cols, self.n_uavs = rows, cols, n_uavs
+        self.latent, self.action_dim = latent, 3 * n_uavs
+        za = latent + self.action_dim
+        self.encoder = Encoder(window=window, rows=rows, cols=cols, n_uavs=n_uavs, channels=channels, hidden=hidden,
+                               latent=latent)
+        self.dynamics = mlp(za, hidden, latent)
+        self.reward = mlp(za, hidden, 1)
+        self.policy = mlp(latent, hidden, self.action_dim)
+        self.q1, self.q2 = q_head(za, hidden), q_head(za, hidden)
+        # TD-MPC initializes the last layers of the reward and the Q heads at zero: returns start at 0.
+        for head in (self.reward, self.q1, self.q2):
+            nn.init.zeros_(head[-1].weight)
+            nn.init.zeros_(head[-1].bias)
+
+    def encode(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """h: observations with any leading shape (...) -> z (..., latent)."""
+        lead = fleet.shape[:-2]
+        z = self.encoder(demand.reshape(-1, *demand.shape[-3:]), fleet.reshape(-1, *fleet.shape[-2:]),
+                         time.reshape(-1, 2))
+        return z.reshape(*lead, self.latent)
+
+    def next(self, z: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """d and R: (..., latent), (..., A) -> next latent (..., latent) and predicted reward (...)."""
+        za = torch.cat([z, a], -1)
+        return self.dynamics(za), self.reward(za).squeeze(-1)
+
+    def q(self, z: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Twin action-values Q1, Q2: (..., latent), (..., A) -> (...), (...)."""
+        za = torch.cat([z, a], -1)
+        return self.q1(za).squeeze(-1), self.q2(za).squeeze(-1)
+
+    def pi(self, z: torch.Tensor, std: float = 0.0, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Policy: tanh(policy(z)), plus Gaussian noise of ``std`` (clipped to [-1, 1]) when std > 0. (..., A)."""
+        a = torch.tanh(self.policy(z))
+        if std > 0:
+            a = (a + std * torch.randn(a.shape, generator=generator, device=a.device, dtype=a.dtype)).clamp(-1, 1)
+        return a
+
+    def q_parameters(self) -> list[nn.Parameter]:
+        return [*self.q1.parameters(), *self.q2.parameters()]
+
+    def model_parameters(self) -> list[nn.Parameter]:
+        """Everything the TOLD loss trains: all but the policy."""
+        skip = {id(p) for p in self.policy.parameters()}
+        return [p for p in self.parameters() if id(p) not in skip]

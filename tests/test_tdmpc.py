@@ -1,0 +1,342 @@
+"""TD-MPC: settings, rewards of the replay, TD targets at truncation, losses that fall, exact resumes, MPPI on toy
+problems, and the controller on small synthetic days (actions, D_max, the manifest's days, seeds)."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from dswm.config import ConfigError
+from dswm.methods.base import DayContext
+from dswm.methods.dswm.training import collect
+from dswm.methods.tdmpc import learner as learner_mod
+from dswm.methods.tdmpc.agent import TDMPCController, project, round_bounds
+from dswm.methods.tdmpc.learner import Learner
+from dswm.methods.tdmpc.planner import MPPIConfig, mppi
+from dswm.methods.tdmpc.replay import TransitionReplay, episode_rewards
+from dswm.methods.tdmpc.settings import PreCollect, TDMPCSettings, resolve
+from dswm.sim.core import FleetCore, Grid, initial_positions
+from dswm.sim.env import synthetic_demand
+
+GRID = Grid(rows=6, cols=6, cell_m=235.0)
+SLOTS = 40            # a short day keeps collection fast; every rule is the same as with 144 slots
+DAY_IDS = np.array([4, 7, 9])   # tensor day of each core day (not 0..2, so a mix-up shows)
+PRE = PreCollect(transitions=2 * (SLOTS - 1), collect_policy="lloyd", collect_parallel=2, explore_std=0.3,
+                 bw_explore_std=0.5)
+BASE = dict(latent=16, hidden=32, enc_channels=4, horizon=3, n_samples=32, policy_share=0.1, n_elites=4,
+            iterations=2, temperature=0.5, momentum=0.1, min_std=0.05, max_std=2.0, gamma=0.95, rho=0.5, tau=0.01,
+            consistency_coef=2.0, reward_coef=0.5, value_coef=0.1, lr=1e-3, pi_lr=1e-3, grad_clip=10.0, batch=16,
+            steps=30, seed_steps=10, episodes=2, parallel=1, explore="mppi", explore_std=0.3, log_points=10,
+            checkpoint_every=7, precollect=PRE)
+
+
+def settings(**kw) -> TDMPCSettings:
+    return TDMPCSettings(**{**BASE, **kw})
+
+
+@pytest.fixture(scope="module")
+def scn(scenario):
+    return dataclasses.replace(scenario, n_uavs=3, slots_per_day=SLOTS, demand_intensity=20.0)
+
+
+def make_core(scn) -> FleetCore:
+    demand = 3.0 * synthetic_demand(days=3, rows=GRID.rows, cols=GRID.cols, slots=SLOTS, seed=1) + 0.05
+    init = initial_positions(demand.mean(axis=(0, 1)), GRID, scn.n_uavs, 0)
+    core = FleetCore(demand=demand, grid=GRID, scenario=scn, init_pos=init, dataset="toy",
+                     day_labels=["2020-01-04", "2020-01-07", "2020-01-09"])
+    core.day_ids = DAY_IDS
+    return core
+
+
+def contexts(core, rows):
+    return [DayContext(dataset="toy", day=int(DAY_IDS[r]), label=core.day_labels[r], split="id", grid=GRID,
+                       scenario=core.scenario, geometry=GRID.geometry(), cells=GRID.cells(),
+                       init_pos=core.init_pos.numpy()) for r in rows]
+
+
+@pytest.fixture(scope="module")
+def replay(scn):
+    core = make_core(scn)
+    pre = collect(core, n_transitions=3 * (SLOTS - 1), cfg=PRE.train_config(), seed=0, day_ids=DAY_IDS)
+    return TransitionReplay.from_precollected(pre, grid=GRID, scenario=scn)
+
+
+@pytest.fixture(scope="module")
+def fitted(scn, tmp_path_factory):
+    """One complete fit: (controller, manifest, run_dir, model file)."""
+    run_dir = tmp_path_factory.mktemp("tdmpc_run")
+    ctrl = TDMPCController(name="tdmpc", seed=0, options=settings())
+    manifest = ctrl.fit(make_core(scn), run_dir=run_dir)
+    ctrl.save(run_dir / "model.pt")
+    return ctrl, manifest, run_dir, run_dir / "model.pt"
+
+
+def learner_for(scn, seed=0, **kw) -> Learner:
+    s = settings(**kw)
+    torch.manual_seed(seed)
+    ctrl = TDMPCController(name="tdmpc", seed=seed, options=s)
+    return Learner(ctrl._build_model(GRID, scn), s, seed=seed)
+
+
+# ----------------------------------------------------------------------------------- settings
+
+def test_settings_resolve_merges_the_budget_and_takes_dswms_precollection():
+    section = {k: v for k, v in BASE.items() if k != "precollect"}
+    config = {"methods": {"tdmpc": {**section, "budgets": {"smoke": {"steps": 12, "episodes": 1}}}},
+              "dswm": {"budgets": {"smoke": {"transitions": 1430}, "demo": {"transitions": 2860}},
+                       "training": {"collect_policy": "greedy", "collect_parallel": 5, "explore_std": 0.2,
+                                    "bw_explore_std": 0.4, "lr": 1e-3}}}
+    s = resolve(config, profile="smoke")
+    assert (s.steps, s.episodes, s.batch) == (12, 1, 16)
+    assert s.precollect == PreCollect(transitions=1430, collect_policy="greedy", collect_parallel=5, explore_std=0.2,
+                                      bw_explore_std=0.4)
+    assert resolve(config, profile="demo").precollect.transitions == 2860
+    assert TDMPCController.options_from_plain(name="tdmpc", data=dataclasses.asdict(s)) == s
+    with pytest.raises(ConfigError, match="n_elites"):
+        settings(n_elites=64)
+    with pytest.raises(ConfigError, match="gamma"):
+        settings(gamma=1.5)
+    with pytest.raises(ConfigError, match="seed_steps"):
+        settings(seed_steps=30)            # no step left for the own episodes
+    bad = {**config, "methods": {"tdmpc": {**section, "horizon": 0}}}
+    with pytest.raises(ConfigError, match="horizon"):
+        resolve(bad, profile="smoke")
+    assert round_bounds(settings()) == [10, 20, 30]
+    assert round_bounds(settings(episodes=0, seed_steps=0)) == [30]
+
+
+# ----------------------------------------------------------------------------------- replay and TD targets
+
+def test_recomputed_rewards_of_the_precollection_equal_the_environments(scn):
+    core = make_core(scn)
+    obs = core.reset([0, 2])
+    rng = np.random.default_rng(0)
+    fleet, acts, srs, rews = [obs["fleet"]], [], [], []
+    for _ in range(SLOTS - 1):
+        a = rng.uniform(-1, 1, size=(2, scn.n_uavs, 3)).astype(np.float32)
+        out = core.step(a)
+        fleet.append(out.obs["fleet"])
+        acts.append(a)
+        srs.append(out.sr)
+        rews.append(out.reward)
+    fleet, acts, srs, rews = (np.stack(x, 1) for x in (fleet, acts, srs, rews))
+    assert (fleet[..., 4:6] > 0.5).any()          # some UAV returned or charged: those energies are checked too
+    for j in range(2):
+        got = episode_rewards(torch.as_tensor(fleet[j]), torch.as_tensor(acts[j]), torch.as_tensor(srs[j]), GRID, scn)
+        np.testing.assert_allclose(got.numpy(), rews[j], atol=1e-5)
+
+
+def test_td_target_bootstraps_on_the_truncated_last_transition(scn, replay):
+    lrn = learner_for(scn)
+    with torch.no_grad():                            # Q' heads start at zero: give the target non-zero values
+        for head in (lrn.target.q1, lrn.target.q2):
+            head[-1].weight.normal_(0.0, 1.0)
+            head[-1].bias.fill_(-1.0)
+    # A window that ends with the day's last decision: its next observation is the day's final one (slot T).
+    horizon, t_last = 3, SLOTS - 2
+    gen = torch.Generator().manual_seed(0)
+    while True:
+        b = replay.sample_windows(64, horizon, gen)
+        hit = ((b["time"][-1] - replay.time_features(torch.tensor(t_last + 1))).abs() < 1e-6).all(-1)
+        if hit.any():
+            break
+    i = int(torch.nonzero(hit)[0])
+    assert not bool(b["terminated"][-1, i])          # truncated by the day's end, never terminated
+    nxt = [b[k][-1, i:i + 1] for k in ("demand", "fleet", "time")]
+    r = b["reward"][-1, i:i + 1]
+    y = lrn.td_target(*nxt, r, torch.zeros(1, dtype=torch.bool))
+    with torch.no_grad():                            # by hand: r + gamma * min(Q1', Q2')(z', pi(z'))
+        z = lrn.target.encode(*nxt)
+        a = torch.tanh(lrn.model.policy(z))
+        za = torch.cat([z, a], -1)
+        q = torch.minimum(lrn.target.q1(za), lrn.target.q2(za)).squeeze(-1)
+    assert abs(float(0.95 * q)) > 0.1                # the bootstrap term is not negligible here
+    torch.testing.assert_close(y, r + 0.95 * q)
+    # the flag does switch the bootstrap off (the environment never sets it)
+    torch.testing.assert_close(lrn.td_target(*nxt, r, torch.ones(1, dtype=torch.bool)), r)
+
+
+# ----------------------------------------------------------------------------------- learning
+
+def test_gradient_steps_lower_the_told_loss_on_a_fixed_batch(scn, replay):
+    lrn = learner_for(scn, batch=32)
+    fixed = replay.sample_windows(64, 3, torch.Generator().manual_seed(123))
+    with torch.no_grad():
+        before, _, m0 = lrn.losses(fixed)
+    for _ in range(300):
+        lrn.train_step(replay)
+    with torch.no_grad():
+        after, _, m1 = lrn.losses(fixed)
+    assert float(after) < 0.5 * float(before)
+    assert m1["reward"] < 0.5 * m0["reward"] and m1["consistency"] < m0["consistency"]
+
+
+def test_a_checkpoint_resumes_to_identical_next_step_losses(scn, replay, tmp_path):
+    lrn = learner_for(scn)
+    for _ in range(5):
+        lrn.train_step(replay)
+    torch.save(lrn.state_dict(), tmp_path / "ckpt.pt")
+    next_a = [lrn.train_step(replay) for _ in range(2)]
+    other = learner_for(scn, seed=5)                   # other weights and sampler until loaded
+    other.load_state_dict(torch.load(tmp_path / "ckpt.pt", weights_only=False))
+    next_b = [other.train_step(replay) for _ in range(2)]
+    assert next_a == next_b
+    assert other.step == lrn.step == 7
+
+
+def test_an_interrupted_fit_resumes_to_the_uninterrupted_model(scn, fitted, tmp_path, monkeypatch):
+    ctrl0, manifest0, _, _ = fitted
+    calls = {"n": 0}
+    real = learner_mod.Learner.train_step
+
+    def failing(self, replay):
+        calls["n"] += 1
+        if calls["n"] == 17:                         # after the first own episode and the checkpoint at step 14
+            raise KeyboardInterrupt
+        return real(self, replay)
+
+    monkeypatch.setattr(learner_mod.Learner, "train_step", failing)
+    ctrl = TDMPCController(name="tdmpc", seed=0, options=settings())
+    with pytest.raises(KeyboardInterrupt):
+        ctrl.fit(make_core(scn), run_dir=tmp_path)
+    monkeypatch.setattr(learner_mod.Learner, "train_step", real)
+    blob = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert blob["learner"]["step"] == 14 and blob["run"]["rounds_done"] == 1
+    manifest = TDMPCController(name="tdmpc", seed=0, options=settings()).fit(make_core(scn), run_dir=tmp_path)
+    resumed = torch.load(tmp_path / "checkpoint.pt", weights_only=False)["learner"]["model"]
+    for k, v in ctrl0.model.state_dict().items():
+        assert torch.equal(resumed[k], v), k
+    assert manifest["days"] == manifest0["days"] and manifest["history"] == manifest0["history"]
+
+
+# ----------------------------------------------------------------------------------- MPPI
+
+class Toy:
+    """Latent = position in R^A; a moves it; reward -|z'-target|^2 (or 0); value -|z+a-target|^2 (or 0);
+    the policy prior always says 0."""
+
+    def __init__(self, target, *, reward=True, value=False):
+        self.target, self.use_r, self.use_v = target, reward, value
+        self.action_dim = target.shape[-1]
+
+    def _t(self, z):
+        return self.target.view(self.target.shape[0], *([1] * (z.dim() - 2)), -1)
+
+    def next(self, z, a):
+        z2 = z + a
+        r = -((z2 - self._t(z)) ** 2).sum(-1) if self.use_r else torch.zeros(z.shape[:-1])
+        return z2, r
+
+    def q(self, z, a):
+        v = -((z + a - self._t(z)) ** 2).sum(-1) if self.use_v else torch.zeros(z.shape[:-1])
+        return v, v + 1.0                            # the minimum of the twins is the first
+
+    def pi(self, z, std=0.0, generator=None):
+        a = torch.zeros_like(z)
+        return (a + std * torch.randn(a.shape, generator=generator)).clamp(-1, 1) if std > 0 else a
+
+
+def toy_cfg(**kw):
+    base = dict(horizon=3, n_samples=512, n_policy=16, n_elites=32, iterations=6, temperature=5.0, momentum=0.1,
+                min_std=0.01, max_std=1.0, gamma=0.9)
+    return MPPIConfig(**{**base, **kw})
+
+
+def test_mppi_recovers_the_first_action_of_a_known_optimum_better_than_the_prior():
+    target = torch.tensor([[0.6, -0.4, 0.2], [-0.7, 0.5, 0.0]])     # two problems planned at once
+    model = Toy(target)
+    res = mppi(model, torch.zeros(2, 3), cfg=toy_cfg(), generator=torch.Generator().manual_seed(0))
+    assert res.action.shape == (2, 3) and res.mean.shape == (2, 3, 3)
+    assert float((res.action - target).abs().max()) < 0.1          # optimum: reach the target at once
+    prior = -((target) ** 2).sum(-1)                                # the prior's first action (0): one step's loss
+    reached = -((res.action - target) ** 2).sum(-1)
+    assert bool((reached > prior + 0.2).all())
+
+
+def test_mppi_uses_the_td_value_at_the_end_of_the_horizon():
+    target = torch.tensor([[0.5, -0.8, 0.3]])
+    model = Toy(target, reward=False, value=True)                   # no reward: only Q(z_H, pi(z_H)) tells
+    res = mppi(model, torch.zeros(1, 3), cfg=toy_cfg(horizon=1), generator=torch.Generator().manual_seed(1))
+    assert float((res.action - target).abs().max()) < 0.1
+
+
+def test_mppi_warm_start_shifts_the_previous_mean():
+    target = torch.tensor([[0.5, -0.8, 0.3]])
+    model = Toy(target, reward=False, value=False)                  # flat returns: the refit keeps the start
+    prev = torch.arange(9, dtype=torch.float32).view(1, 3, 3) / 10.0
+    res = mppi(model, torch.zeros(1, 3), cfg=toy_cfg(n_samples=4000, n_elites=4000, iterations=1, momentum=0.999,
+                                                     n_policy=0), generator=torch.Generator().manual_seed(2),
+               prev_mean=prev)
+    expect = torch.cat([prev[:, 1:], torch.zeros(1, 1, 3)], 1)
+    torch.testing.assert_close(res.mean, expect, atol=2e-3, rtol=0)
+
+
+# ----------------------------------------------------------------------------------- the controller
+
+def test_manifest_days_are_the_training_days_of_the_replays_episodes(scn, fitted):
+    ctrl, manifest, _, _ = fitted
+    rep = ctrl.replay
+    assert manifest["days"] == [int(DAY_IDS[r]) for r in rep.rows] == rep.episode_days()
+    assert manifest["days"] == [4, 7, 9, 4]          # DSWM's two pre-collected days, then two own episodes
+    assert manifest["day_labels"] == ["2020-01-04", "2020-01-07", "2020-01-09", "2020-01-04"]
+    assert rep.own == [False, False, True, True]
+    assert manifest["n_transitions"] == (SLOTS - 1) * len(manifest["days"]) == rep.n_transitions
+    assert manifest["transitions_per_day_episode"] == SLOTS - 1 and manifest["steps"] == 30
+    assert manifest["read_test_data"] is False
+    hist = manifest["history"]
+    assert hist["step"][-1] == 30 and all(len(v) == len(hist["step"]) for v in hist.values())
+    # the pre-collected episodes are exactly DSWM's (same heuristic, settings and seed)
+    dswm = collect(make_core(scn), n_transitions=PRE.transitions, cfg=PRE.train_config(), seed=0, day_ids=DAY_IDS)
+    for a, b in zip(dswm.actions, rep.actions[:2], strict=False):
+        assert torch.equal(a, b)
+
+
+def test_actions_stay_in_the_box_and_displacements_within_d_max(scn, fitted):
+    ctrl, _, _, _ = fitted
+    core = make_core(scn)
+    obs = core.reset([1, 2])
+    ctrl.reset_batch(contexts(core, [1, 2]))
+    longest = 0.0
+    for _ in range(SLOTS - 1):
+        before = core.state.pos.clone()
+        active = core.state.status == 0
+        a = ctrl.act_batch(obs)
+        assert a.shape == (2, scn.n_uavs, 3) and a.dtype == np.float32
+        assert np.abs(a).max() <= 1.0 and np.linalg.norm(a[..., :2], axis=-1).max() <= 1.0 + 1e-6
+        obs = core.step(a).obs
+        moved = torch.linalg.vector_norm(core.state.pos - before, dim=-1)[active]
+        longest = max(longest, float(torch.cat([moved, torch.zeros(1)]).max()))
+    assert 0.3 * scn.d_max_m < longest <= scn.d_max_m + 1e-3   # the fleet does move, never beyond D_max
+    wild = project(torch.tensor([[[3.0, 3.0, -5.0], [0.3, -0.4, 0.2]]]))
+    torch.testing.assert_close(wild, torch.tensor([[[0.5 ** 0.5, 0.5 ** 0.5, -1.0], [0.3, -0.4, 0.2]]]))
+
+
+def run_day(ctrl, scn, rows, slots=8):
+    core = make_core(scn)
+    obs = core.reset(rows)
+    ctrl.reset_batch(contexts(core, rows))
+    out = []
+    for _ in range(slots):
+        a = ctrl.act_batch(obs)
+        out.append(a)
+        obs = core.step(a).obs
+    return np.stack(out)
+
+
+def test_same_seed_same_actions_and_the_saved_model_acts_alike(scn, fitted):
+    ctrl, _, _, model_file = fitted
+    loaded = [TDMPCController(name="tdmpc", seed=s, options=settings()) for s in (0, 0, 1)]
+    for c in loaded:
+        c.load(model_file)
+    a0, a1, a2 = (run_day(c, scn, [0, 2]) for c in loaded)
+    np.testing.assert_array_equal(a0, a1)
+    np.testing.assert_array_equal(a0, run_day(ctrl, scn, [0, 2]))      # the fitted controller, same seed
+    assert not np.array_equal(a0, a2)                                    # the seed does drive the sampling
+    single = TDMPCController(name="tdmpc", seed=0, options=settings())
+    single.load(model_file)
+    core = make_core(scn)
+    single.reset(contexts(core, [0])[0])
+    one = single.act({k: v[0] for k, v in core.reset([0]).items()})
+    assert one.shape == (scn.n_uavs, 3) and np.abs(one).max() <= 1.0
+    with pytest.raises(ValueError, match="retrain"):
+        TDMPCController(name="tdmpc", seed=0, options=settings(latent=8)).load(model_file)
