@@ -11,11 +11,24 @@ A method's settings are one typed section, :attr:`Controller.options_type`, buil
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
-from dswm.config import ConfigError, build, merge
+from dswm.config import ConfigError, build, merge, stable_hash
+
+
+def training_inputs_hash(core, day_ids=None) -> str:
+    """Hash of what a training run reads besides its settings: the training-day demand tensor, its day ids (tensor
+    day of each of ``core``'s days; ``core.day_ids`` when None) and labels, the grid and the scenario of ``core``
+    (a FleetCore of TRAINING days). A learning method's checkpoint resumes only a run with the same hash."""
+    if day_ids is None:
+        day_ids = getattr(core, "day_ids", range(core.n_days))
+    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
+    return stable_hash({"demand_sha256": demand, "day_ids": np.asarray(day_ids, dtype=np.int64).tolist(),
+                        "day_labels": list(core.day_labels), "grid": dataclasses.asdict(core.grid),
+                        "scenario": dataclasses.asdict(core.scenario)})
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -17,7 +17,6 @@ the first imagined map: the model's anchored next map, the current map (persiste
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 from dswm.config import stable_hash, to_plain
-from dswm.methods.base import Controller, DayContext
+from dswm.methods.base import Controller, DayContext, training_inputs_hash
 from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, anchor
 from dswm.methods.dswm.settings import DSWMSettings, resolve
 from dswm.methods.dswm.training import collect, save_training_figure, train
@@ -36,14 +35,6 @@ from dswm.sim.core import Grid, fleet_state_from_obs
 from dswm.sim.physics import ServiceParams
 from prep.atomic import atomic_path
 
-
-def training_inputs_hash(core, day_ids: np.ndarray) -> str:
-    """Hash of what a training run reads besides its settings: the training-day demand tensor, its day ids
-    (tensor day of each of ``core``'s days) and labels, the grid and the scenario of ``core`` (a FleetCore of
-    TRAINING days)."""
-    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
-    return stable_hash({"demand_sha256": demand, "day_ids": day_ids.tolist(), "day_labels": list(core.day_labels),
-                        "grid": dataclasses.asdict(core.grid), "scenario": dataclasses.asdict(core.scenario)})
 
 
 class BCDProposal:

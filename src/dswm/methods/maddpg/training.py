@@ -12,8 +12,6 @@ day-episodes and at the end; a run finds it and continues when its settings and 
 """
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import math
 from pathlib import Path
 
@@ -21,6 +19,7 @@ import numpy as np
 import torch
 
 from dswm.config import ConfigError, stable_hash, to_plain
+from dswm.methods.base import training_inputs_hash
 from dswm.methods.maddpg.learner import Learner
 from dswm.methods.maddpg.networks import N_ACTION, scale_demand
 from dswm.methods.maddpg.replay import Replay
@@ -50,13 +49,6 @@ def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
     passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
     return np.concatenate(passes)[:n_episodes].astype(np.int64)
 
-
-def inputs_hash(core) -> str:
-    """Hash of what training reads besides the settings: demand, day ids and labels, grid, scenario."""
-    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
-    day_ids = np.asarray(getattr(core, "day_ids", range(core.n_days)), dtype=np.int64)
-    return stable_hash({"demand_sha256": demand, "day_ids": day_ids.tolist(), "day_labels": list(core.day_labels),
-                        "grid": dataclasses.asdict(core.grid), "scenario": dataclasses.asdict(core.scenario)})
 
 
 class Trainer:
@@ -176,4 +168,4 @@ class Trainer:
 
 def checkpoint_key(*, method: str, seed: int, settings: MADDPGSettings, core) -> dict:
     """What a checkpoint must match to be continued: method, seed, settings and training inputs."""
-    return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)), "inputs": inputs_hash(core)}
+    return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)), "inputs": training_inputs_hash(core)}

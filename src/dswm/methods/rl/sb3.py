@@ -23,7 +23,6 @@ the project supplies the environment, the settings (config.yaml ``methods.ppo`` 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import io
 import json
 import math
@@ -42,7 +41,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
 from dswm.config import ConfigError, stable_hash, to_plain
-from dswm.methods.base import Controller, DayContext
+from dswm.methods.base import Controller, DayContext, training_inputs_hash
 from dswm.methods.rl.logger import HistoryWriter, history_logger
 from dswm.methods.rl.spaces import DEMAND_TRANSFORM, fleet_action, flat_observation, observation_dim
 from dswm.methods.rl.vec_env import FleetVecEnv
@@ -169,14 +168,6 @@ class SACSettings(SB3Settings):
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------
-def training_inputs_hash(core, day_ids: np.ndarray) -> str:
-    """Hash of what a training run reads besides its settings: the training-day demand, day ids and labels, the
-    grid and the scenario of ``core``."""
-    demand = hashlib.sha256(np.ascontiguousarray(core.demand.detach().cpu().numpy()).tobytes()).hexdigest()
-    return stable_hash({"demand_sha256": demand, "day_ids": np.asarray(day_ids).tolist(),
-                        "day_labels": list(core.day_labels), "grid": dataclasses.asdict(core.grid),
-                        "scenario": dataclasses.asdict(core.scenario)})
-
 
 def _rng_states(model: BaseAlgorithm) -> dict:
     return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),

@@ -28,7 +28,7 @@ import torch
 
 from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext
-from dswm.methods.dswm.agent import training_inputs_hash
+from dswm.methods.base import training_inputs_hash
 from dswm.methods.dswm.training import collect
 from dswm.methods.tdmpc.learner import METRICS, Learner
 from dswm.methods.tdmpc.model import TOLD
