@@ -7,12 +7,13 @@ import platform
 import statistics
 import time
 from pathlib import Path
+from typing import Callable
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def median_ms(fn, *, reps: int = 30, warmup: int = 3) -> float:
-    """Median wall time of ``fn()`` in milliseconds."""
+    """Median wall time of ``fn()`` in milliseconds (see :func:`spread_ms` for min and max too)."""
     for _ in range(warmup):
         fn()
     times = []
@@ -21,6 +22,36 @@ def median_ms(fn, *, reps: int = 30, warmup: int = 3) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return 1e3 * statistics.median(times)
+
+
+def timed(run: Callable[[], object], *, setup: Callable[[], object] | None = None, repeats: int = 5,
+          warmup: int = 1) -> dict:
+    """Wall seconds of ``run()`` after ``warmup`` untimed calls: median, min and max of ``repeats`` timed calls
+    (``setup()`` before each call, untimed)."""
+    if repeats < 5:
+        raise ValueError(f"repeats: expected at least 5, found {repeats}")
+    times = []
+    for i in range(warmup + repeats):
+        if setup is not None:
+            setup()
+        t0 = time.perf_counter()
+        run()
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times), "repeats": repeats,
+            "warmup": warmup}
+
+
+def rate(timing: dict, work: float) -> dict:
+    """``work`` per second at the median, and at the slowest and fastest repeat."""
+    return {"median": work / timing["median_s"], "min": work / timing["max_s"], "max": work / timing["min_s"]}
+
+
+def spread_ms(fn, *, reps: int = 30, warmup: int = 3) -> dict:
+    """Median, min and max wall time of ``fn()`` in milliseconds over ``reps`` (>= 5) calls after ``warmup``."""
+    timing = timed(fn, repeats=reps, warmup=warmup)
+    return {"median_ms": round(1e3 * timing["median_s"], 3), "min_ms": round(1e3 * timing["min_s"], 3),
+            "max_ms": round(1e3 * timing["max_s"], 3), "repeats": reps, "warmup": warmup}
 
 
 def machine() -> dict:

@@ -10,40 +10,14 @@ are their median with the min and max.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
-from typing import Callable
 
 import numpy as np
 import torch
 
-from _timing import write
+from _timing import rate, timed, write
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.sim.core import FleetCore, Grid, initial_positions
 from dswm.sim.env import default_scenario, synthetic_demand
-
-
-def timed(run: Callable[[], object], *, setup: Callable[[], object] | None = None, repeats: int = 5,
-          warmup: int = 1) -> dict:
-    """Wall seconds of ``run()`` after ``warmup`` untimed calls: median, min and max of ``repeats`` timed calls
-    (``setup()`` before each call, untimed)."""
-    if repeats < 5:
-        raise ValueError(f"repeats: expected at least 5, found {repeats}")
-    times = []
-    for i in range(warmup + repeats):
-        if setup is not None:
-            setup()
-        t0 = time.perf_counter()
-        run()
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times), "repeats": repeats,
-            "warmup": warmup}
-
-
-def rate(timing: dict, work: float) -> dict:
-    """``work`` per second at the median, and at the slowest and fastest repeat."""
-    return {"median": work / timing["median_s"], "min": work / timing["max_s"], "max": work / timing["min_s"]}
 
 
 def bench_core(core: FleetCore, episodes: int, *, repeats: int, seed: int = 0) -> dict:

@@ -9,7 +9,7 @@ import argparse
 
 import torch
 
-from _timing import median_ms, write
+from _timing import spread_ms, write
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.sim.physics import ServiceParams, associate, path_loss_db, served_ratio
 
@@ -55,9 +55,9 @@ def main() -> None:
     assert max_diff < 1e-4, f"all-pairs reference and served_ratio differ by {max_diff}"
 
     with torch.no_grad():
-        fwd = median_ms(lambda: served_ratio(demand, pos, avail, cells, params=params))
-        fwd_ref = median_ms(lambda: served_ratio_all_pairs(demand, pos, avail, cells, params=params))
-        assoc = median_ms(lambda: associate(pos, avail, cells))
+        fwd = spread_ms(lambda: served_ratio(demand, pos, avail, cells, params=params))
+        fwd_ref = spread_ms(lambda: served_ratio_all_pairs(demand, pos, avail, cells, params=params))
+        assoc = spread_ms(lambda: associate(pos, avail, cells))
     pos_g = pos.clone().requires_grad_(True)
     pos_r = pos.clone().requires_grad_(True)
 
@@ -67,14 +67,17 @@ def main() -> None:
             fn(demand, p, avail, cells, params=params).sum().backward()
         return run
 
-    fwd_bwd = median_ms(fb(served_ratio, pos_g))
-    fwd_bwd_ref = median_ms(fb(served_ratio_all_pairs, pos_r))
+    fwd_bwd = spread_ms(fb(served_ratio, pos_g))
+    fwd_bwd_ref = spread_ms(fb(served_ratio_all_pairs, pos_r))
     write("physics", {
         "shape": {"N": args.n, "K": args.k, "G": side * side},
-        "forward_ms": round(fwd, 3), "forward_backward_ms": round(fwd_bwd, 3),
-        "association_only_ms": round(assoc, 3),
-        "all_pairs_forward_ms": round(fwd_ref, 3), "all_pairs_forward_backward_ms": round(fwd_bwd_ref, 3),
-        "speedup_forward": round(fwd_ref / fwd, 2), "speedup_forward_backward": round(fwd_bwd_ref / fwd_bwd, 2),
+        "forward_ms": fwd["median_ms"], "forward_backward_ms": fwd_bwd["median_ms"],
+        "association_only_ms": assoc["median_ms"],
+        "all_pairs_forward_ms": fwd_ref["median_ms"], "all_pairs_forward_backward_ms": fwd_bwd_ref["median_ms"],
+        "speedup_forward": round(fwd_ref["median_ms"] / fwd["median_ms"], 2),
+        "speedup_forward_backward": round(fwd_bwd_ref["median_ms"] / fwd_bwd["median_ms"], 2),
+        "spread_ms": {"forward": fwd, "forward_backward": fwd_bwd, "association_only": assoc,
+                      "all_pairs_forward": fwd_ref, "all_pairs_forward_backward": fwd_bwd_ref},
         "max_abs_difference_vs_all_pairs": max_diff,
         "targets": {"forward_ms": 10, "forward_backward_ms": 25, "speedup": 3},
     })

@@ -14,7 +14,7 @@ On the demo grid (20 x 20 cells, K = 16 of the config scenario, synthetic demand
   per second and gradient steps per second from its manifest. An entry may change settings for the timing only
   (SAC starts updating at once: the steady state, not its random warm-up).
 
-Every timing: one warm-up, then the median of ``--repeats`` (>= 5) with min and max (``bench_env.timed``). A fit
+Every timing: one warm-up, then the median of ``--repeats`` (>= 5) with min and max (``_timing.timed``). A fit
 of the full demo budget takes about ``demo transitions / transitions per second``.
 """
 from __future__ import annotations
@@ -28,8 +28,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from _timing import write
-from bench_env import demo_core, rate, timed
+from _timing import rate, timed, write
+from bench_env import demo_core
 from dswm.config import load_yaml, to_plain
 from dswm.methods.registry import load_class
 from dswm.pipeline.allocator import keep_freed_memory
@@ -65,8 +65,25 @@ ENTRIES: dict[str, Entry] = {
         "n_envs": 4, "day_episodes": 40, "net_arch": [128, 128], "learning_rate": 3.0e-4, "gamma": 0.99,
         "batch_size": 128, "checkpoint_every": 5, "buffer_size": 6000, "learning_starts": 572, "tau": 0.005,
         "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True}),
-    # further learners (maddpg, tdmpc, ...): one Entry each
+    "maddpg": Entry(target="dswm.methods.maddpg:MADDPGController", budget=lambda o, rounds: maddpg_budget(o, rounds),
+                    demo={}, timing={"warmup": 143}),
+    "tdmpc": Entry(target="dswm.methods.tdmpc:TDMPCController", budget=lambda o, rounds: tdmpc_budget(o, rounds),
+                   demo={}),
 }
+
+
+def maddpg_budget(options, rounds: int) -> dict:
+    """MADDPG on ``rounds`` x 4 day-episodes (one at random: ``timing``), one checkpoint at the end."""
+    return {"transitions": 143 * 4 * rounds, "checkpoint_every": 4 * rounds}
+
+
+def tdmpc_budget(options, rounds: int) -> dict:
+    """TD-MPC's pre-collection and seed steps, then ``rounds`` rounds of ``parallel`` own day-episodes with the
+    demo's gradient steps per own episode (2 rounds are its whole demo budget)."""
+    per_episode = (options.steps - options.seed_steps) // max(options.episodes, 1)
+    episodes = options.parallel * rounds
+    return {"episodes": episodes, "steps": options.seed_steps + per_episode * episodes,
+            "checkpoint_every": options.steps}
 
 
 def demo_options(name: str, entry: Entry):
