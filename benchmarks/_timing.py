@@ -12,18 +12,6 @@ from typing import Callable
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def median_ms(fn, *, reps: int = 30, warmup: int = 3) -> float:
-    """Median wall time of ``fn()`` in milliseconds (see :func:`spread_ms` for min and max too)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
-
-
 def timed(run: Callable[[], object], *, setup: Callable[[], object] | None = None, repeats: int = 5,
           warmup: int = 1) -> dict:
     """Wall seconds of ``run()`` after ``warmup`` untimed calls: median, min and max of ``repeats`` timed calls

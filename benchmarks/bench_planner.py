@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import yaml
 
-from _timing import RESULTS, median_ms, write
+from _timing import RESULTS, spread_ms, write
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.methods.dswm.agent import DSWMController
 from dswm.methods.dswm.settings import resolve as dswm_settings
@@ -92,14 +92,14 @@ def _breakdown(ctl: DSWMController, core: FleetCore, n: int) -> dict:
         avail = available(nxt)
         cells = core.cells.to(dev)
         parts = {
-            "rssm_prior": median_ms(lambda: model.rssm.img_step(state, act.flatten(1), sample=False), reps=10),
-            "demand_ensemble_and_anchor": median_ms(lambda: anchor(x_now, model.demand_members(feat), 0.95),
+            "rssm_prior": spread_ms(lambda: model.rssm.img_step(state, act.flatten(1), sample=False), reps=10),
+            "demand_ensemble_and_anchor": spread_ms(lambda: anchor(x_now, model.demand_members(feat), 0.95),
                                                     reps=10),
-            "fleet_step": median_ms(lambda: fleet_step(fleet, act, core.geom, core.scenario), reps=10),
-            "service_physics": median_ms(lambda: service(x_hat, nxt.pos, avail, cells, params=core.params,
+            "fleet_step": spread_ms(lambda: fleet_step(fleet, act, core.geom, core.scenario), reps=10),
+            "service_physics": spread_ms(lambda: service(x_hat, nxt.pos, avail, cells, params=core.params,
                                                          bw_logit=act[..., 2]), reps=10),
         }
-    return {key: round(v, 2) for key, v in parts.items()}
+    return {key: round(v["median_ms"], 2) for key, v in parts.items()} | {"spread_ms": parts}
 
 
 def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> dict:
@@ -116,9 +116,10 @@ def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> di
 
     compiled = torch.compile(model_part, dynamic=False, fullgraph=True)
     with torch.inference_mode():
-        ms = median_ms(lambda: compiled(state, fleet, act), reps=20)
+        spread = spread_ms(lambda: compiled(state, fleet, act), reps=20)
+    ms = spread["median_ms"]
     return {"ms_per_imagined_step": round(ms, 2), "imagined_steps_per_slot": steps,
-            "ms_per_slot": round(ms * steps, 1)}
+            "ms_per_slot": round(ms * steps, 1), "spread_ms_per_imagined_step": spread}
 
 
 def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
@@ -138,9 +139,10 @@ def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> di
         opt.step()
         model.update_teacher()
 
-    ms = median_ms(step, reps=steps, warmup=2)
+    spread = spread_ms(step, reps=max(steps, 5), warmup=2)
+    ms = spread["median_ms"]
     return {"batch": s.training.batch, "seq_len": s.training.seq_len, "median_ms_per_step": round(ms, 1),
-            "steps_per_s": round(1e3 / ms, 2)}
+            "steps_per_s": round(1e3 / ms, 2), "spread_ms_per_step": spread}
 
 
 def _figure(result: dict, path) -> None:
