@@ -183,3 +183,17 @@ def test_nan_action_refused_and_out_of_range_clipped(scenario):
     c1, c2 = _core(scenario), _core(scenario)
     c1.reset([0]), c2.reset([0])
     assert np.array_equal(c1.step(big).sr, c2.step(one).sr)
+
+
+def test_uav_load_splits_the_served_demand_among_the_uavs(scenario):
+    core = _core(scenario, days=2)
+    core.reset([0, 1])
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        out = core.step(rng.uniform(-1, 1, size=(2, scenario.n_uavs, 3)).astype(np.float32))
+    x = core.demand[core.days, core.t].reshape(2, -1).numpy()
+    assert core.uav_load.shape == (2, scenario.n_uavs)
+    assert (core.uav_load >= 0).all()
+    # Every served unit is served by exactly one UAV: the per-UAV loads add up to SR times the total demand.
+    np.testing.assert_allclose(core.uav_load.sum(-1), out.sr * x.sum(-1), rtol=1e-5)
+    assert (core.uav_load > 0).sum() > 1

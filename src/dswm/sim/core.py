@@ -18,7 +18,7 @@ from dswm.config import stable_hash
 from dswm.sim.scenario import Scenario
 from dswm.sim.energy import hover_power
 from dswm.sim.fleet import ACTIVE, CHARGING, RETURNING, FleetState, Geometry, available, fleet_step
-from dswm.sim.physics import ServiceParams, jain_index, service
+from dswm.sim.physics import ServiceParams, jain_index, service, sum_per_uav
 
 OBS_SPEC_VERSION = 1
 FLEET_FEATURES = ("x_over_width", "y_over_height", "battery_fraction", "active", "returning", "charging",
@@ -229,6 +229,8 @@ class FleetCore:
         )
         res = self._serve(self.demand[self.days, 0], self.state, None)
         self.sr0 = res.sr.numpy()
+        self.uav_load = sum_per_uav(self.demand[self.days, 0] * res.fulfilment, res.assoc,
+                                    self.scenario.n_uavs).numpy()
         self.jain0 = jain_index(res.fulfilment, self.demand[self.days, 0], self.scenario.u_peak).numpy()
         return self.observe()
 
@@ -258,6 +260,9 @@ class FleetCore:
             x = self.demand[self.days, self.t]
             res = self._serve(x, self.state, a[..., 2])
             jain = jain_index(res.fulfilment, x, self.scenario.u_peak)
+            # (B, K) demand each UAV served in this slot (sum of x_g f_g over its associated cells): the
+            # per-UAV load that fairness-regularized learners read after a step.
+            self.uav_load = sum_per_uav(x * res.fulfilment, res.assoc, self.scenario.n_uavs).numpy()
             fleet_energy = energy.sum(-1)
             s = self.scenario
             reward = res.sr - s.reward_beta * (1.0 - res.sr) - s.reward_alpha * fleet_energy / (

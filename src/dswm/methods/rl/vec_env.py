@@ -98,6 +98,11 @@ class FleetVecEnv(VecEnv):
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float32)
 
+    def reward_of(self, out) -> np.ndarray:
+        """(n_envs,) float32 reward the learner sees for one step of the core (``out``, a StepOutput): the
+        paper's eq. 7 here; a multi-objective learner overrides it with its own scalarization."""
+        return out.reward.astype(np.float32)
+
     def step_wait(self):
         """One slot of every episode: (obs (n_envs, D), reward (n_envs,) float32, done (n_envs,) bool, infos)."""
         if self._actions is None:
@@ -106,7 +111,7 @@ class FleetVecEnv(VecEnv):
         self._actions = None
         self.transitions += self.num_envs
         obs = flat_observation(out.obs)
-        reward = out.reward.astype(np.float32)
+        reward = self.reward_of(out)
         self._return += reward
         self._sr += out.sr
         terminated, truncated = np.asarray(out.terminated, bool), np.asarray(out.truncated, bool)
