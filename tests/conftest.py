@@ -11,6 +11,9 @@ from dswm.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
+LEARNING_BASELINES = {"ppo": "model-free RL", "sac": "model-free RL", "maddpg": "MARL", "ga_matr": "MARL",
+                      "tdmpc": "model-based"}
+"""The paper's learning baselines with their Table III class; each trains alone (no other method shares its model)."""
 
 
 

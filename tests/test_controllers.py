@@ -12,10 +12,9 @@ from dswm.methods import registry
 from dswm.methods.base import Controller
 from dswm.methods.classical import GreedyController, OracleController, StaticController
 
-from conftest import ROOT
+from conftest import LEARNING_BASELINES, ROOT
 
 LEARNERS = ["dswm", "dswm_wo_unc", "dswm_wo_dec"]
-BASELINE_LEARNERS = ("ppo", "sac", "maddpg", "tdmpc")  # each trains alone: no other method shares its training
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +31,7 @@ def sources(config):
     """The training sources of the learning methods but the baselines, DSWM+ left out (it shares dswm's in every case here); the
     learning baselines (ppo, sac, ...) are their own training sources (test below)."""
     return {m: src for m, src in S.resolve(config).training_sources().items()
-            if m != "dswm_plus" and m not in BASELINE_LEARNERS}
+            if m != "dswm_plus" and m not in LEARNING_BASELINES}
 
 
 @pytest.fixture
@@ -137,9 +136,8 @@ def test_only_the_upper_bounds_are_clairvoyant_and_only_world_models_and_rl_meth
     classes = {n: m.controller_class for n, m in settings.methods.items()}
     assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["oracle", "perfect"]
     learners = sorted(n for n, m in settings.methods.items() if m.learns)
-    assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", "ppo", "sac", "maddpg", "tdmpc"])
-    assert [settings.methods[m].table_class for m in ("ppo", "sac", "maddpg", "tdmpc")] == \
-        ["model-free RL", "model-free RL", "MARL", "model-based"]
+    assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", *LEARNING_BASELINES])
+    assert [settings.methods[m].table_class for m in LEARNING_BASELINES] == list(LEARNING_BASELINES.values())
 
 
 def test_unregistered_method_names_the_key_and_the_expected_form(raw):
@@ -200,7 +198,7 @@ def test_dswm_wo_unc_and_dswm_plus_share_the_training_of_dswm_and_dswm_wo_dec_tr
     assert raw["methods"]["run"][:3] == LEARNERS
     s = S.resolve(cfg)
     assert s.training_sources() == {"dswm": "dswm", "dswm_wo_unc": "dswm", "dswm_wo_dec": "dswm_wo_dec",
-                                    "dswm_plus": "dswm", **{m: m for m in s.methods if m in BASELINE_LEARNERS}}
+                                    "dswm_plus": "dswm", **{m: m for m in s.methods if m in LEARNING_BASELINES}}
     ident = {m: registry.training_identity(s.methods[m].controller_class, s.methods[m].options) for m in LEARNERS}
     assert ident["dswm"] == ident["dswm_wo_unc"] != ident["dswm_wo_dec"]
     plus = s.methods["dswm_plus"]

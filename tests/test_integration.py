@@ -20,7 +20,7 @@ import polars as pl
 import pytest
 from mlflow.tracking import MlflowClient
 
-from conftest import ROOT
+from conftest import LEARNING_BASELINES, ROOT
 from dswm.config import load_yaml
 
 pytestmark = pytest.mark.integration
@@ -39,7 +39,7 @@ def methods_on(ds):
 
 
 PAIRS = sorted((d, m) for d in DATASETS for m in methods_on(d))  # (dataset, method) of every evaluate job
-LEARNERS = ("ppo", "sac", "maddpg", "tdmpc")  # the learning baselines, each its own training source
+LEARNERS = tuple(LEARNING_BASELINES)  # the learning baselines, each its own training source
 CONTRACT_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                     "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
                     "dataset"]  # docs/ARCHITECTURE.md, "Results"

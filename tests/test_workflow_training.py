@@ -8,6 +8,7 @@ from pathlib import Path
 
 from dswm import settings as runconfig
 from dswm.config import load_yaml
+from conftest import LEARNING_BASELINES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,8 +30,7 @@ def test_methods_that_share_a_training_get_no_train_job_and_evaluate_the_source_
     trained = sorted(re.findall(r"^rule train:\n(?:\s+.*\n)*?\s+output: results/(\w+)/(\w+)/seed(\d+)/model\.pt",
                                 text, flags=re.M))
     own = [m for m in resolved.trained()]  # dswm, dswm_wo_dec and each learning baseline on its datasets
-    assert sorted(own) == sorted(["dswm", "dswm_wo_dec", *[m for m in resolved.methods if m in ("ppo", "sac", "maddpg",
-                                                                                              "tdmpc")]])
+    assert sorted(own) == sorted(["dswm", "dswm_wo_dec", *[m for m in resolved.methods if m in LEARNING_BASELINES]])
     assert trained == sorted((ds, m, str(s)) for ds, m, s in resolved.jobs() if m in own)
     evaluated = re.findall(r"^rule evaluate:\n\s+input: ([^\n]*)\n\s+output: results/(\w+)/dswm_wo_unc/seed(\d+)/",
                            text, flags=re.M)
