@@ -12,7 +12,7 @@ from dswm.sim.scenario import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 LEARNING_BASELINES = {"ppo": "model-free RL", "sac": "model-free RL", "maddpg": "MARL", "ga_matr": "MARL",
-                      "tdmpc": "model-based"}
+                      "tdmpc": "model-based", "emorl_tcto": "multi-obj. RL"}
 """The paper's learning baselines with their Table III class; each trains alone (no other method shares its model)."""
 
 

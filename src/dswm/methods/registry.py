@@ -43,6 +43,7 @@ BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
     _spec("sac", "dswm.methods.rl.sb3:SACController", "SAC", "model-free RL"),
     _spec("maddpg", "dswm.methods.maddpg:MADDPGController", "MADDPG", "MARL"),
     _spec("ga_matr", "dswm.methods.ga_matr:GAMATRController", "GA-MATR", "MARL"),
+    _spec("emorl_tcto", "dswm.methods.emorl_tcto:EMORLTCTOController", "EMORL-TCTO", "multi-obj. RL"),
     _spec("tdmpc", "dswm.methods.tdmpc:TDMPCController", "TD-MPC", "model-based"),
     _spec("oracle", "dswm.methods.classical:OracleController", "Oracle (clairvoyant)", "upper bound"),
     _spec("perfect", "dswm.methods.dswm.agent:PerfectForecastController", "Perfect forecast (clairvoyant)",

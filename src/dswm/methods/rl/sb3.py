@@ -169,13 +169,13 @@ class SACSettings(SB3Settings):
 
 # ---- helpers ---------------------------------------------------------------------------------------------
 
-def _rng_states(model: BaseAlgorithm) -> dict:
+def rng_states(model: BaseAlgorithm) -> dict:
     return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
             "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "action_space": model.action_space.np_random.bit_generator.state}
 
 
-def _set_rng_states(model: BaseAlgorithm, states: Mapping[str, Any]) -> None:
+def set_rng_states(model: BaseAlgorithm, states: Mapping[str, Any]) -> None:
     random.setstate(states["python"])
     np.random.set_state(states["numpy"])
     torch.set_rng_state(states["torch"])
@@ -184,7 +184,7 @@ def _set_rng_states(model: BaseAlgorithm, states: Mapping[str, Any]) -> None:
     model.action_space.np_random.bit_generator.state = states["action_space"]
 
 
-class _DumpEachUpdate(BaseCallback):
+class DumpEachUpdate(BaseCallback):
     """Dumps SB3's logger after every update, so the history averages every update's losses."""
 
     def __init__(self, n_updates: int):
@@ -264,7 +264,7 @@ class SB3Controller(Controller):
             model, writer, done = resumed
         model.set_logger(history_logger(writer))
         every = max(1, math.ceil(rounds / MAX_HISTORY_POINTS))
-        dumps = _DumpEachUpdate(model._n_updates)
+        dumps = DumpEachUpdate(model._n_updates)
         for r in range(done, rounds):
             model.learn(total_timesteps=s.n_envs * horizon, callback=dumps, log_interval=None,
                         reset_num_timesteps=False, progress_bar=False)
@@ -289,7 +289,7 @@ class SB3Controller(Controller):
 
     def _write_checkpoint(self, path: Path, model: BaseAlgorithm, venv: FleetVecEnv, writer: HistoryWriter,
                           rounds_done: int, identity: str) -> None:
-        state = {"identity": identity, "rounds_done": rounds_done, "rng": _rng_states(model),
+        state = {"identity": identity, "rounds_done": rounds_done, "rng": rng_states(model),
                  "env": venv.state_dict(), "history": writer.history}
         blob = io.BytesIO()
         torch.save(state, blob)
@@ -321,7 +321,7 @@ class SB3Controller(Controller):
         obs = venv.load_state_dict(state["env"])
         if not np.array_equal(obs, model._last_obs):
             raise RuntimeError(f"{path}: the checkpoint's last observation does not match its round's days")
-        _set_rng_states(model, state["rng"])
+        set_rng_states(model, state["rng"])
         return model, HistoryWriter(state["history"]), int(state["rounds_done"])
 
     # ---- files -------------------------------------------------------------------------------------------

@@ -1,0 +1,117 @@
+"""EMORL-TCTO's settings (config.yaml ``methods.emorl_tcto``, one profile's budget merged in)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from dswm.config import ConfigError
+
+SELECT_RULES = ("best_served_ratio", "max_scalarized")
+"""Rules that pick the executed policy among the archive members (:func:`.archive.select_member`)."""
+RESUME_FREE = ("generations", "checkpoint_every")
+"""Settings a checkpoint may differ in and still resume (more generations continue a shorter run)."""
+DECISION_TIME = ("select_rule", "select_weight")
+"""Settings read after training only: they pick the executed member of the trained archive, so a change retrains
+nothing (``EMORLTCTOController.training_settings`` leaves them out)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EMORLTCTOSettings:
+    """Population, evolution, prediction, selection and the inner PPO learner of EMORL-TCTO."""
+
+    # ---- evolution ------------------------------------------------------------------------------------
+    n_population: int
+    """Warm-up policies (one per evenly spread weight) and tasks trained per generation."""
+    warmup_rounds: int
+    """PPO rounds (n_envs day-episodes each) of every warm-up task."""
+    generations: int
+    """Generations after the warm-up (each trains n_population tasks chosen by prediction)."""
+    task_rounds: int
+    """PPO rounds of every task of a generation."""
+    weight_divisions: int
+    """Divisions of the Das-Dennis lattice of weights on the 3-objective simplex: the candidate weights (and the
+    pool the warm-up weights are spread over), (d + 1)(d + 2) / 2 of them."""
+    prediction_bandwidth: float
+    """Bandwidth of the Gaussian weights of past tasks in a policy's improvement model, in objective space scaled
+    per objective by the range over every policy measured (``prediction.neighbour_weights``)."""
+    prediction_ridge: float
+    """Ridge penalty on the slope of the improvement model (0: plain least squares)."""
+    eval_days: int
+    """Training days of the fixed set every policy's objective vector is measured on (all days if fewer)."""
+    # ---- executed policy (decision time) ---------------------------------------------------------------
+    select_rule: Literal["best_served_ratio", "max_scalarized"] | None
+    """The archive member executed: ``best_served_ratio`` (highest mean served ratio on the evaluation days)
+    or ``max_scalarized`` (highest select_weight . objectives); None only in a training-settings slice."""
+    select_weight: tuple[float, float, float] | None
+    """Weights of (served ratio, -energy, Jain) for ``max_scalarized`` (unused by ``best_served_ratio``)."""
+    # ---- inner PPO learner (Stable-Baselines3) ---------------------------------------------------------
+    n_envs: int
+    """Training days stepped together; a round is n_envs day-episodes, one PPO rollout."""
+    net_arch: tuple[int, ...]
+    """Hidden-layer widths of the actor's MLP and of the critic's (separate networks)."""
+    learning_rate: float
+    """Adam's learning rate (constant)."""
+    gamma: float
+    """Discount per slot."""
+    batch_size: int
+    """Minibatch size; divides a rollout of n_envs x 143 transitions."""
+    n_epochs: int
+    """Passes over each rollout."""
+    gae_lambda: float
+    """GAE's lambda."""
+    clip_range: float
+    """PPO's ratio clipping."""
+    ent_coef: float
+    """Weight of the entropy bonus."""
+    vf_coef: float
+    """Weight of the value loss."""
+    max_grad_norm: float
+    """Gradient-norm clipping."""
+    log_std_init: float
+    """Initial log std of the Gaussian policy (state-independent, learned)."""
+    checkpoint_every: int
+    """Tasks between checkpoints (one is also written at the end)."""
+
+    def _fail(self, key: str, expected: str) -> None:
+        raise ConfigError(f"config key methods.emorl_tcto.{key}: expected {expected}, found {getattr(self, key)!r}")
+
+    def __post_init__(self):
+        for key in ("n_population", "warmup_rounds", "task_rounds", "weight_divisions", "eval_days", "n_envs",
+                    "batch_size", "n_epochs", "checkpoint_every"):
+            if not isinstance(getattr(self, key), int) or getattr(self, key) < 1:
+                self._fail(key, "an integer >= 1")
+        if not isinstance(self.generations, int) or self.generations < 0:
+            self._fail("generations", "an integer >= 0")
+        n_weights = (self.weight_divisions + 1) * (self.weight_divisions + 2) // 2
+        if self.n_population > n_weights:
+            self._fail("n_population", f"at most the {n_weights} lattice weights of weight_divisions = "
+                                       f"{self.weight_divisions} (one distinct warm-up weight per policy)")
+        if not self.net_arch or any(w < 1 for w in self.net_arch):
+            self._fail("net_arch", "a non-empty list of layer widths >= 1")
+        for key in ("prediction_bandwidth", "learning_rate", "clip_range", "vf_coef", "max_grad_norm"):
+            if not getattr(self, key) > 0:
+                self._fail(key, "a number > 0")
+        for key in ("prediction_ridge", "ent_coef"):
+            if not getattr(self, key) >= 0:
+                self._fail(key, "a number >= 0")
+        if not 0 < self.gamma <= 1:
+            self._fail("gamma", "a number in (0, 1]")
+        if not 0 <= self.gae_lambda <= 1:
+            self._fail("gae_lambda", "a number in [0, 1]")
+        if self.select_rule is not None and self.select_rule not in SELECT_RULES:
+            self._fail("select_rule", f"one of {list(SELECT_RULES)}")
+        if (self.select_rule is None) != (self.select_weight is None):
+            self._fail("select_weight", "a list of 3 weights exactly when select_rule is set")
+        if self.select_weight is not None and (len(self.select_weight) != 3 or min(self.select_weight) < 0
+                                               or sum(self.select_weight) <= 0):
+            self._fail("select_weight", "3 numbers >= 0 with a positive sum (served ratio, -energy, Jain)")
+
+    def rollout_check(self, horizon: int) -> None:
+        """Checks that need the day's length: batch_size divides the rollout of n_envs x ``horizon`` transitions."""
+        if (self.n_envs * horizon) % self.batch_size:
+            raise ConfigError(f"config key methods.emorl_tcto.batch_size: expected a divisor of the rollout n_envs x "
+                              f"{horizon} = {self.n_envs * horizon}, found {self.batch_size}")
+
+    def training(self) -> "EMORLTCTOSettings":
+        """These settings without the decision-time ones (:data:`DECISION_TIME` set to None)."""
+        return dataclasses.replace(self, select_rule=None, select_weight=None)
