@@ -12,7 +12,8 @@ from dswm.sim.scenario import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 LEARNING_BASELINES = {"ppo": "model-free RL", "sac": "model-free RL", "maddpg": "MARL", "ga_matr": "MARL",
-                      "tdmpc": "model-based", "emorl_tcto": "multi-obj. RL"}
+                      "tdmpc": "model-based", "emorl_tcto": "multi-obj. RL",
+                      "hrl_tpra": "hier. RL"}
 """The paper's learning baselines with their Table III class; each trains alone (no other method shares its model)."""
 
 

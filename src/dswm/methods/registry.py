@@ -44,12 +44,13 @@ BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
     _spec("maddpg", "dswm.methods.maddpg:MADDPGController", "MADDPG", "MARL"),
     _spec("ga_matr", "dswm.methods.ga_matr:GAMATRController", "GA-MATR", "MARL"),
     _spec("emorl_tcto", "dswm.methods.emorl_tcto:EMORLTCTOController", "EMORL-TCTO", "multi-obj. RL"),
+    _spec("hrl_tpra", "dswm.methods.hrl_tpra:HRLTPRAController", "HRL-TPRA", "hier. RL"),
     _spec("tdmpc", "dswm.methods.tdmpc:TDMPCController", "TD-MPC", "model-based"),
     _spec("oracle", "dswm.methods.classical:OracleController", "Oracle (clairvoyant)", "upper bound"),
     _spec("perfect", "dswm.methods.dswm.agent:PerfectForecastController", "Perfect forecast (clairvoyant)",
           "upper bound"),
 ]}
-"""Built-in methods (docs/PROTOCOL.md §5). The other paper baselines are added here as they are implemented."""
+"""Built-in methods (docs/PROTOCOL.md §5): the paper's 14, this project's DSWM+ and its probe, the two upper bounds."""
 
 
 def lookup(name: str, methods: Mapping[str, Any]) -> tuple[MethodSpec, type[Controller]]:
