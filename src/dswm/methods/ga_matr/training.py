@@ -18,8 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dswm.config import ConfigError, stable_hash, to_plain
-from dswm.methods.base import training_inputs_hash
+from dswm.config import ConfigError
 from dswm.methods.ga_matr.happo import Learner, Rollout, gae
 from dswm.methods.ga_matr.networks import ACTIVE_FEATURE, PolicyInputs, context_dim, policy_inputs, uav_dim
 from dswm.methods.ga_matr.settings import GAMATRSettings
@@ -155,6 +154,15 @@ class Trainer:
             self.history[name].append(float(np.mean(values)))
         self._acc = {k: [] for k in self._acc}
 
+    @property
+    def progress(self) -> tuple[int, int]:
+        """(rounds done, rounds in all): the unit of ``checkpoint_every``."""
+        return self.round, self.n_rounds
+
+    def advance(self) -> None:
+        """Run one round."""
+        self.run_round()
+
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:
         """Write the whole run state atomically (torch.save); rounds start from a reset core, so no env state."""
@@ -172,8 +180,3 @@ class Trainer:
         self.days_used = [int(d) for d in blob["days_used"]]
         self.history, self._acc = blob["history"], blob["acc"]
 
-
-def checkpoint_key(*, method: str, seed: int, settings: GAMATRSettings, core) -> dict:
-    """What a checkpoint must match to be continued: method, seed, settings and training inputs."""
-    return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)),
-            "inputs": training_inputs_hash(core)}

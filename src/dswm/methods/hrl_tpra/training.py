@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dswm.config import ConfigError, stable_hash, to_plain
-from dswm.methods.base import training_inputs_hash
+from dswm.config import ConfigError
 from dswm.methods.hrl_tpra.features import Frame, compose_action, low_inputs, plan_inputs
 from dswm.methods.hrl_tpra.learner import Learner, Rollout
 from dswm.methods.hrl_tpra.settings import HRLTPRASettings
@@ -36,11 +35,6 @@ def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
     passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
     return np.concatenate(passes)[:n_episodes].astype(np.int64)
 
-
-def checkpoint_key(*, method: str, seed: int, settings: HRLTPRASettings, core) -> dict:
-    """What a checkpoint must match to be continued: method, seed, settings and training inputs."""
-    return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)),
-            "inputs": training_inputs_hash(core)}
 
 
 class Trainer:
@@ -160,6 +154,15 @@ class Trainer:
         for name, values in self._acc.items():
             self.history[name].append(float(np.mean(values)))
         self._acc = {k: [] for k in self._acc}
+
+    @property
+    def progress(self) -> tuple[int, int]:
+        """(rounds done, rounds in all): the unit of ``checkpoint_every``."""
+        return self.round, self.n_rounds
+
+    def advance(self) -> None:
+        """Run one round."""
+        self.run_round()
 
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:

@@ -18,8 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dswm.config import ConfigError, stable_hash, to_plain
-from dswm.methods.base import training_inputs_hash
+from dswm.config import ConfigError
 from dswm.methods.maddpg.learner import Learner
 from dswm.methods.maddpg.networks import N_ACTION, scale_demand
 from dswm.methods.maddpg.replay import Replay
@@ -145,6 +144,15 @@ class Trainer:
             self.history[name].append(float(np.mean(values)) if values else float("nan"))
         self._acc = {k: [] for k in self._acc}
 
+    @property
+    def progress(self) -> tuple[int, int]:
+        """(episodes done, episodes in all): the unit of ``checkpoint_every``."""
+        return self.episode, self.n_episodes
+
+    def advance(self) -> None:
+        """Run one episode."""
+        self.run_episode()
+
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:
         """Write the whole run state atomically (torch.save)."""
@@ -165,7 +173,3 @@ class Trainer:
         self.days_used = [int(d) for d in blob["days_used"]]
         self.history, self._acc = blob["history"], blob["acc"]
 
-
-def checkpoint_key(*, method: str, seed: int, settings: MADDPGSettings, core) -> dict:
-    """What a checkpoint must match to be continued: method, seed, settings and training inputs."""
-    return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)), "inputs": training_inputs_hash(core)}
