@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from dswm.config import ConfigError
-from dswm.methods.base import DayContext
 from dswm.methods.hrl_tpra import HRLTPRAController, HRLTPRASettings
 from dswm.methods.hrl_tpra.actors import LoopMLP, ResourceActors, StackedMLP
 from dswm.methods.hrl_tpra.features import (FAR, Frame, compose_action, local_dim, low_inputs, plan_inputs,
@@ -18,15 +17,12 @@ from dswm.methods.hrl_tpra.features import (FAR, Frame, compose_action, local_di
 from dswm.methods.hrl_tpra.learner import gae, macro_targets
 from dswm.methods.hrl_tpra.pointer import PointerPlanner
 from dswm.methods.hrl_tpra.training import Trainer, day_schedule
-from dswm.pipeline.jobs import training_core
-from dswm.protocol.evaluation import evaluate
-from dswm.sim.core import FleetCore, Grid, build_observation, initial_positions
-from dswm.sim.env import synthetic_demand
-from dswm.sim.fleet import ACTIVE, CHARGING, FleetState
-from prep.tensor import DemandTensor, GridSpec
+from dswm.sim.core import Grid, build_observation
+from dswm.sim.fleet import CHARGING, FleetState
+from learner_checks import (DAY_IDS, GRID, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
+                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone, contexts,
+                            toy_core)
 
-GRID = Grid(rows=6, cols=6, cell_m=235.0)
-DAY_IDS = np.array([2, 5, 7, 11])  # tensor days of the core's four training days
 SMALL = HRLTPRASettings(macro_slots=6, candidates=8, pointer_hidden=16, tanh_clip=10.0, crop_radius=1,
                         actor_hidden=16, actor_depth=2, fine_scale=0.5, log_std_init=-0.5, gamma=0.9,
                         gae_lambda=0.95, high_gamma=0.5, clip_range=0.2, ent_coef=0.0, high_ent_coef=0.01, lr=3e-3,
@@ -43,12 +39,7 @@ def scenario3(scenario):
 
 @pytest.fixture(scope="module")
 def core(scenario3):
-    demand = synthetic_demand(days=4, rows=GRID.rows, cols=GRID.cols, slots=scenario3.slots_per_day, seed=3)
-    c = FleetCore(demand=demand, grid=GRID, scenario=scenario3,
-                  init_pos=initial_positions(demand.mean(axis=(0, 1)), GRID, scenario3.n_uavs, 0),
-                  dataset="toy", day_labels=[f"2024-01-{d:02d}" for d in DAY_IDS])
-    c.day_ids = DAY_IDS
-    return c
+    return toy_core(scenario3)
 
 
 @pytest.fixture(scope="module")
@@ -61,11 +52,6 @@ def fitted(core, tmp_path_factory):
     manifest = ctrl.fit(core, run_dir=tmp_path_factory.mktemp("hrl_run"))
     return ctrl, manifest, rollout, before
 
-
-def contexts(core, days):
-    return [DayContext(dataset="toy", day=int(d), label=core.day_labels[d], split="train", grid=core.grid,
-                       scenario=core.scenario, geometry=core.geom, cells=core.cells,
-                       init_pos=core.init_pos.numpy()) for d in days]
 
 
 # ----------------------------------------------------------------------------------- settings
@@ -344,75 +330,21 @@ def test_fit_continues_a_finished_run_from_its_checkpoint(core, tmp_path, monkey
 
 # ----------------------------------------------------------------------------------- acting
 
+def make(seed, options):
+    return HRLTPRAController(name="hrl_tpra", seed=seed, options=options)
+
+
 def test_actions_are_bounded_and_moves_stay_within_dmax(fitted, core):
-    ctrl = fitted[0]
-    ctrl.reset_batch(contexts(core, [0, 3]))
-    obs = core.reset([0, 3])
-    d_max, moved = core.scenario.d_max_m, 0.0
-    for _ in range(143):
-        action = ctrl.act_batch(obs)
-        assert action.shape == (2, 3, 3) and action.dtype == np.float32
-        assert np.all(np.abs(action) <= 1.0)
-        pos, active = core.state.pos.clone(), core.state.status == ACTIVE
-        obs = core.step(action).obs
-        step = torch.linalg.norm(core.state.pos - pos, dim=-1)[active]
-        if len(step):
-            assert float(step.max()) <= d_max * (1 + 1e-5)
-            moved = max(moved, float(step.max()))
-    assert moved > 0.1 * d_max  # the policy does move the fleet
+    assert check_actions_bounded_and_moves_within_dmax(fitted[0], core) > 0.1 * core.scenario.d_max_m  # the policy does move the fleet
 
 
 def test_same_seed_same_actions(core, tmp_path):
-    obs = core.reset([1, 2])
-    acts = []
-    for seed, run in ((0, "a"), (0, "b"), (1, "c")):
-        ctrl = HRLTPRAController(name="hrl_tpra", seed=seed, options=QUICK)
-        ctrl.fit(core, run_dir=tmp_path / run)
-        ctrl.reset_batch(contexts(core, [1, 2]))
-        acts.append(ctrl.act_batch(obs))
-    assert np.array_equal(acts[0], acts[1])
-    assert not np.allclose(acts[0], acts[2])
-    ctrl.reset(contexts(core, [2])[0])
-    single = ctrl.act({k: v[1] for k, v in obs.items()})
-    np.testing.assert_allclose(single, acts[2][1], rtol=1e-5, atol=1e-6)
+    check_same_seed_same_actions(make, QUICK, core, tmp_path)
 
 
 def test_save_load_round_trip_and_checks(fitted, core, tmp_path):
-    ctrl = fitted[0]
-    ctrl.save(tmp_path / "model.pt")
-    loaded = HRLTPRAController(name="hrl_tpra", seed=0, options=SMALL)
-    loaded.load(tmp_path / "model.pt")
-    for c in (ctrl, loaded):
-        c.reset_batch(contexts(core, [0]))
-    obs = core.reset([0])
-    for _ in range(8):  # across a macro-slot boundary
-        a = ctrl.act_batch(obs)
-        np.testing.assert_array_equal(loaded.act_batch(obs), a)
-        obs = core.step(a).obs
-    wider = HRLTPRAController(name="hrl_tpra", seed=0, options=dataclasses.replace(SMALL, actor_hidden=8))
-    with pytest.raises(ValueError, match="architecture"):
-        wider.load(tmp_path / "model.pt")
-    other = dataclasses.replace(contexts(core, [0])[0], grid=Grid(rows=7, cols=6, cell_m=235.0))
-    with pytest.raises(ValueError, match="6x6 grid"):
-        loaded.reset_batch([other])
+    check_save_load(fitted[0], make, SMALL, dataclasses.replace(SMALL, actor_hidden=8), core, tmp_path, slots=8)  # across a macro-slot boundary
 
 
 def test_trains_on_the_training_days_of_a_tensor_and_evaluates_batched_as_alone(scenario3, tmp_path):
-    """The train rule's core holds the tensor's training days only; evaluation batched or day by day agrees."""
-    demand = np.concatenate([synthetic_demand(days=5, rows=6, cols=6, seed=9)[:3] * 0.5,
-                             synthetic_demand(days=2, rows=6, cols=6, seed=10) * 2.0])
-    days = [{"index": i, "label": f"d{i}", "split": "train" if i in (0, 2, 4) else "test", "weekday": i % 7,
-             "weekend": False} for i in range(5)]
-    demand = demand[[0, 3, 1, 4, 2]]  # training days 0, 2, 4 (from the first draw), test days 1, 3
-    meta = {"dataset": "toy", "source": "demo", "days": days, "slots_per_day": 144,
-            "eval_days": {"id": [1], "ood": [3]}, "grid": {"rows": 6, "cols": 6, "cell_m": 235.0}}
-    tensor = DemandTensor(demand=demand, meta=meta, grid=GridSpec(rows=6, cols=6, cell_m=235.0))
-    train = training_core(tensor, scenario3)
-    ctrl = HRLTPRAController(name="hrl_tpra", seed=0, options=dataclasses.replace(QUICK, n_envs=3, day_episodes=3))
-    manifest = ctrl.fit(train, run_dir=tmp_path)
-    assert sorted(manifest["days"]) == [0, 2, 4] and manifest["day_labels"] == [f"d{d}" for d in manifest["days"]]
-    runs = [evaluate(tensor=tensor, controller=ctrl, scenario=scenario3, seed=0, limits={"id": None, "ood": None},
-                     profile="smoke", device="cpu", batch_days=b, progress_interval_s=5.0).days for b in (True, False)]
-    assert runs[0]["day"].to_list() == [1, 3]
-    cols = ["sr_mean", "energy_kj_per_slot", "jain"]
-    np.testing.assert_allclose(runs[0].select(cols).to_numpy(), runs[1].select(cols).to_numpy(), rtol=1e-5)
+    check_trains_on_training_days_and_evaluates_batched_as_alone(make, dataclasses.replace(QUICK, n_envs=3, day_episodes=3), scenario3, tmp_path)

@@ -5,11 +5,12 @@ A method subclasses :class:`TrainedController` and gives it three hooks: ``make_
 training core), ``model_state`` (the learner's weights for the model file) and ``build_learner`` (a learner with
 those weights). Its Trainer offers ``progress`` ((units done, units in all), the unit of ``checkpoint_every``),
 ``advance()`` (one unit), ``save(path, key)``/``restore(blob)`` (the whole run state), ``days_used`` (the core day of
-every day-episode, in order), ``per_day``, ``history`` and ``learner.steps``.
+every day-episode, in order), ``per_day``, ``history`` (its :class:`CurveLog`'s) and ``learner.steps``.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from pathlib import Path
 from typing import Any, ClassVar, Mapping, Sequence
@@ -27,6 +28,36 @@ def checkpoint_key(*, method: str, seed: int, settings: Any, core) -> dict:
     """What a checkpoint must match to be continued: method, seed, settings and training inputs."""
     return {"method": method, "seed": seed, "settings": stable_hash(to_plain(settings)),
             "inputs": training_inputs_hash(core)}
+
+
+class CurveLog:
+    """A training curve of at most ``log_points`` points per metric: the values added during a window of units
+    (rounds or day-episodes) are averaged into one point, written at the end of every window and at the last unit
+    with the transition count as its step (NaN for a metric without a value in the window)."""
+
+    def __init__(self, names, *, units: int, log_points: int):
+        self.units = units
+        self.window = max(1, math.ceil(units / log_points))
+        self.history: dict[str, list[float]] = {"step": [], **{n: [] for n in names}}
+        self.acc: dict[str, list[float]] = {n: [] for n in names}
+
+    def add(self, name: str, *values: float) -> None:
+        self.acc[name].extend(float(v) for v in values)
+
+    def end_unit(self, done: int, transitions: int) -> None:
+        """Unit ``done`` is over (1-based); close the window when it ends there."""
+        if done % self.window and done != self.units:
+            return
+        self.history["step"].append(transitions)
+        for name, values in self.acc.items():
+            self.history[name].append(float(np.mean(values)) if values else float("nan"))
+        self.acc = {k: [] for k in self.acc}
+
+    def state_dict(self) -> dict:
+        return {"history": self.history, "acc": self.acc}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.history, self.acc = state["history"], state["acc"]
 
 
 def training_manifest(trainer, core, checkpoint: Path) -> dict:

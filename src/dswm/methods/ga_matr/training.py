@@ -23,6 +23,7 @@ from dswm.methods.ga_matr.happo import Learner, Rollout, gae
 from dswm.methods.ga_matr.networks import ACTIVE_FEATURE, PolicyInputs, context_dim, policy_inputs, uav_dim
 from dswm.methods.ga_matr.settings import GAMATRSettings
 from dswm.methods.rl.spaces import flat_observation, observation_dim
+from dswm.methods.trained import CurveLog
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "charts/entropy": "entropy",
@@ -80,10 +81,7 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(seed)
         self.round = self.transitions = 0
         self.days_used: list[int] = []
-        self.window = max(1, math.ceil(self.n_rounds / s.log_points))
-        self.history: dict[str, list[float]] = {"step": [], **{k: [] for k in ROUND_METRICS},
-                                                **{k: [] for k in METRICS}}
-        self._acc: dict[str, list[float]] = {k: [] for k in (*ROUND_METRICS, *METRICS)}
+        self.curve = CurveLog((*ROUND_METRICS, *METRICS), units=self.n_rounds, log_points=s.log_points)
 
     def observe(self, obs: dict) -> tuple[PolicyInputs, torch.Tensor]:
         """The policy's inputs and the critic's flat observation of a batched observation (numpy)."""
@@ -144,15 +142,15 @@ class Trainer:
 
     def _log(self, stats: dict[str, float], update: dict) -> None:
         for name in ROUND_METRICS:
-            self._acc[name].append(stats[name])
+            self.curve.add(name, stats[name])
         for name, key in METRICS.items():
-            self._acc[name].append(update[key])
-        if self.round % self.window and self.round != self.n_rounds:
-            return
-        self.history["step"].append(self.transitions)
-        for name, values in self._acc.items():
-            self.history[name].append(float(np.mean(values)))
-        self._acc = {k: [] for k in self._acc}
+            self.curve.add(name, update[key])
+        self.curve.end_unit(self.round, self.transitions)
+
+    @property
+    def history(self) -> dict[str, list[float]]:
+        """The training curve (``CurveLog.history``)."""
+        return self.curve.history
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -167,8 +165,7 @@ class Trainer:
     def save(self, path: str | Path, extra: dict) -> None:
         """Write the whole run state atomically (torch.save); rounds start from a reset core, so no env state."""
         blob = {"learner": self.learner.state_dict(), "gen": self.gen.get_state(), "round": self.round,
-                "transitions": self.transitions, "days_used": list(self.days_used), "history": self.history,
-                "acc": self._acc, "extra": extra}
+                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(), "extra": extra}
         with atomic_path(path) as tmp:
             torch.save(blob, tmp)
 
@@ -178,5 +175,5 @@ class Trainer:
         self.gen.set_state(blob["gen"])
         self.round, self.transitions = int(blob["round"]), int(blob["transitions"])
         self.days_used = [int(d) for d in blob["days_used"]]
-        self.history, self._acc = blob["history"], blob["acc"]
+        self.curve.load_state_dict(blob)
 

@@ -20,6 +20,7 @@ from dswm.config import ConfigError
 from dswm.methods.hrl_tpra.features import Frame, compose_action, low_inputs, plan_inputs
 from dswm.methods.hrl_tpra.learner import Learner, Rollout
 from dswm.methods.hrl_tpra.settings import HRLTPRASettings
+from dswm.methods.trained import CurveLog
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "losses/high_policy": "high_policy",
@@ -64,10 +65,7 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(seed)  # planner and actor sampling, minibatch order
         self.round = 0
         self.days_used: list[int] = []
-        self.window = max(1, math.ceil(self.n_rounds / s.log_points))
-        self.history: dict[str, list[float]] = {"step": [], **{k: [] for k in EPISODE_METRICS},
-                                                **{k: [] for k in METRICS}}
-        self._acc: dict[str, list[float]] = {k: [] for k in (*EPISODE_METRICS, *METRICS)}
+        self.curve = CurveLog((*EPISODE_METRICS, *METRICS), units=self.n_rounds, log_points=s.log_points)
 
     @property
     def transitions(self) -> int:
@@ -144,16 +142,16 @@ class Trainer:
         return {"days": [int(d) for d in days], "return": ret, "served_ratio": float(sr.mean()), "update": update}
 
     def _log(self, ret: float, sr: float, update: dict[str, float]) -> None:
-        self._acc["charts/episode_return"].append(ret)
-        self._acc["charts/served_ratio"].append(sr)
+        self.curve.add("charts/episode_return", ret)
+        self.curve.add("charts/served_ratio", sr)
         for name, key in METRICS.items():
-            self._acc[name].append(update[key])
-        if self.round % self.window and self.round != self.n_rounds:
-            return
-        self.history["step"].append(self.transitions)
-        for name, values in self._acc.items():
-            self.history[name].append(float(np.mean(values)))
-        self._acc = {k: [] for k in self._acc}
+            self.curve.add(name, update[key])
+        self.curve.end_unit(self.round, self.transitions)
+
+    @property
+    def history(self) -> dict[str, list[float]]:
+        """The training curve (``CurveLog.history``)."""
+        return self.curve.history
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -169,7 +167,7 @@ class Trainer:
         """Write the whole run state atomically (torch.save)."""
         blob = {"learner": self.learner.state_dict(), "gen": self.gen.get_state(),
                 "torch_rng": torch.get_rng_state(), "round": self.round, "days_used": list(self.days_used),
-                "history": self.history, "acc": self._acc, "extra": extra}
+                **self.curve.state_dict(), "extra": extra}
         with atomic_path(path) as tmp:
             torch.save(blob, tmp)
 
@@ -180,4 +178,4 @@ class Trainer:
         torch.set_rng_state(blob["torch_rng"])
         self.round = int(blob["round"])
         self.days_used = [int(d) for d in blob["days_used"]]
-        self.history, self._acc = blob["history"], blob["acc"]
+        self.curve.load_state_dict(blob)

@@ -24,6 +24,7 @@ from dswm.methods.maddpg.networks import N_ACTION, scale_demand
 from dswm.methods.maddpg.replay import Replay
 from dswm.methods.maddpg.settings import MADDPGSettings
 from dswm.sim.env import UAVFleetParallelEnv
+from dswm.methods.trained import CurveLog
 from prep.atomic import atomic_path
 
 METRICS = {"losses/critic": "critic", "losses/actor": "actor", "charts/q_mean": "q",
@@ -79,10 +80,7 @@ class Trainer:
         self.gen = torch.Generator().manual_seed(seed)  # warm-up actions, exploration noise, batch indices
         self.episode = self.transitions = 0
         self.days_used: list[int] = []
-        self.window = max(1, math.ceil(self.n_episodes / s.log_points))
-        self.history: dict[str, list[float]] = {"step": [], **{k: [] for k in EPISODE_METRICS},
-                                                **{k: [] for k in METRICS}}
-        self._acc: dict[str, list[float]] = {k: [] for k in (*EPISODE_METRICS, *METRICS)}
+        self.curve = CurveLog((*EPISODE_METRICS, *METRICS), units=self.n_episodes, log_points=s.log_points)
 
     def _tensor(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return tuple(torch.as_tensor(obs[k], device=self.device).unsqueeze(0) for k in ("demand", "fleet", "time"))
@@ -133,16 +131,16 @@ class Trainer:
         return {"day": day, "return": ret, "served_ratio": float(np.mean(srs)), "updates": losses}
 
     def _log(self, ret: float, sr: float, losses: list[dict[str, float]]) -> None:
-        self._acc["charts/episode_return"].append(ret)
-        self._acc["charts/served_ratio"].append(sr)
+        self.curve.add("charts/episode_return", ret)
+        self.curve.add("charts/served_ratio", sr)
         for name, key in METRICS.items():
-            self._acc[name] += [m[key] for m in losses]
-        if self.episode % self.window and self.episode != self.n_episodes:
-            return
-        self.history["step"].append(self.transitions)
-        for name, values in self._acc.items():
-            self.history[name].append(float(np.mean(values)) if values else float("nan"))
-        self._acc = {k: [] for k in self._acc}
+            self.curve.add(name, *(m[key] for m in losses))
+        self.curve.end_unit(self.episode, self.transitions)
+
+    @property
+    def history(self) -> dict[str, list[float]]:
+        """The training curve (``CurveLog.history``)."""
+        return self.curve.history
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -158,8 +156,7 @@ class Trainer:
         """Write the whole run state atomically (torch.save)."""
         blob = {"learner": self.learner.state_dict(), "replay": self.replay.state_dict(),
                 "gen": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "episode": self.episode,
-                "transitions": self.transitions, "days_used": list(self.days_used), "history": self.history,
-                "acc": self._acc, "extra": extra}
+                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(), "extra": extra}
         with atomic_path(path) as tmp:
             torch.save(blob, tmp)
 
@@ -171,5 +168,5 @@ class Trainer:
         torch.set_rng_state(blob["torch_rng"])
         self.episode, self.transitions = int(blob["episode"]), int(blob["transitions"])
         self.days_used = [int(d) for d in blob["days_used"]]
-        self.history, self._acc = blob["history"], blob["acc"]
+        self.curve.load_state_dict(blob)
 
