@@ -165,7 +165,8 @@ class Trainer:
     def save(self, path: str | Path, extra: dict) -> None:
         """Write the whole run state atomically (torch.save); rounds start from a reset core, so no env state."""
         blob = {"learner": self.learner.state_dict(), "gen": self.gen.get_state(), "round": self.round,
-                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(), "extra": extra}
+                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(),
+                "extra": extra}
         with atomic_path(path) as tmp:
             torch.save(blob, tmp)
 

@@ -5,8 +5,9 @@ deployment and day labels of the training core, so no other day exists in it. Da
 passes over the training days (a fixed schedule drawn from the seed); each episode is one whole day of
 slots_per_day - 1 transitions. The first ``warmup`` transitions act uniformly at random; then every agent acts
 with the shared actor on its local view plus Gaussian noise (agent i's view is built from its own observation:
-the common maps, fleet and time, and its index, the position of its one-hot in ``possible_agents``). Every ``update_every`` transitions, once the
-buffer holds a batch, ``gradient_steps`` gradient steps run (``Learner.update``). A checkpoint (weights,
+the common maps, fleet and time, and its index, the position of its one-hot in ``possible_agents``). Every
+``update_every`` transitions, once the buffer holds a batch, ``gradient_steps`` gradient steps run
+(``Learner.update``). A checkpoint (weights,
 targets, optimizers, the filled replay, RNG states, counters, history) is written every ``checkpoint_every``
 day-episodes and at the end; a run finds it and continues when its settings and inputs are the same.
 """
@@ -156,7 +157,8 @@ class Trainer:
         """Write the whole run state atomically (torch.save)."""
         blob = {"learner": self.learner.state_dict(), "replay": self.replay.state_dict(),
                 "gen": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "episode": self.episode,
-                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(), "extra": extra}
+                "transitions": self.transitions, "days_used": list(self.days_used), **self.curve.state_dict(),
+                "extra": extra}
         with atomic_path(path) as tmp:
             torch.save(blob, tmp)
 
