@@ -198,6 +198,14 @@ class FleetCore:
     def n_days(self) -> int:
         return int(self.demand.shape[0])
 
+    @property
+    def uav_load(self) -> np.ndarray:
+        """(B, K) demand each UAV served in the current slot (sum of x_g f_g over its associated cells): the
+        per-UAV load that fairness-regularized learners read after ``reset``/``step``."""
+        x, res = self._served
+        with torch.no_grad():
+            return sum_per_uav(x * res.fulfilment, res.assoc, self.scenario.n_uavs).numpy()
+
     def _window(self) -> torch.Tensor:
         w = self.scenario.obs_window
         idx = torch.clamp(torch.arange(self.t - w, self.t + 1, device=self.device), min=0)
@@ -229,8 +237,7 @@ class FleetCore:
         )
         res = self._serve(self.demand[self.days, 0], self.state, None)
         self.sr0 = res.sr.numpy()
-        self.uav_load = sum_per_uav(self.demand[self.days, 0] * res.fulfilment, res.assoc,
-                                    self.scenario.n_uavs).numpy()
+        self._served = (self.demand[self.days, 0], res)
         self.jain0 = jain_index(res.fulfilment, self.demand[self.days, 0], self.scenario.u_peak).numpy()
         return self.observe()
 
@@ -260,9 +267,7 @@ class FleetCore:
             x = self.demand[self.days, self.t]
             res = self._serve(x, self.state, a[..., 2])
             jain = jain_index(res.fulfilment, x, self.scenario.u_peak)
-            # (B, K) demand each UAV served in this slot (sum of x_g f_g over its associated cells): the
-            # per-UAV load that fairness-regularized learners read after a step.
-            self.uav_load = sum_per_uav(x * res.fulfilment, res.assoc, self.scenario.n_uavs).numpy()
+            self._served = (x, res)  # for uav_load, computed only when a learner asks
             fleet_energy = energy.sum(-1)
             s = self.scenario
             reward = res.sr - s.reward_beta * (1.0 - res.sr) - s.reward_alpha * fleet_energy / (
