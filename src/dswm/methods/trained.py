@@ -60,6 +60,28 @@ class CurveLog:
         self.history, self.acc = state["history"], state["acc"]
 
 
+class UnitTrainer:
+    """``history``, ``progress`` and ``advance`` of a Trainer that runs in units of ``unit`` ("round" or
+    "episode"): its counter is the attribute ``<unit>``, its total ``n_<unit>s``, its step ``run_<unit>()``, its
+    training curve the :class:`CurveLog` ``curve``."""
+
+    unit: ClassVar[str]
+
+    @property
+    def history(self) -> dict[str, list[float]]:
+        """The training curve (``CurveLog.history``)."""
+        return self.curve.history
+
+    @property
+    def progress(self) -> tuple[int, int]:
+        """(units done, units in all): the unit of ``checkpoint_every``."""
+        return getattr(self, self.unit), getattr(self, f"n_{self.unit}s")
+
+    def advance(self) -> None:
+        """Run one unit."""
+        getattr(self, f"run_{self.unit}")()
+
+
 def training_manifest(trainer, core, checkpoint: Path) -> dict:
     """The training manifest of a finished run: every day-episode as a tensor day, counts, checkpoint, history."""
     day_ids = np.asarray(getattr(core, "day_ids", range(core.n_days)), dtype=np.int64)

@@ -23,7 +23,7 @@ from dswm.methods.ga_matr.happo import Learner, Rollout, gae
 from dswm.methods.ga_matr.networks import ACTIVE_FEATURE, PolicyInputs, context_dim, policy_inputs, uav_dim
 from dswm.methods.ga_matr.settings import GAMATRSettings
 from dswm.methods.rl.spaces import flat_observation, observation_dim
-from dswm.methods.trained import CurveLog
+from dswm.methods.trained import CurveLog, UnitTrainer
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "charts/entropy": "entropy",
@@ -53,7 +53,7 @@ def load_cv(load: np.ndarray, available: np.ndarray) -> np.ndarray:
     return np.where(ok, std / np.where(ok, mean, 1.0), 0.0)
 
 
-class Trainer:
+class Trainer(UnitTrainer):
     """The state of one training run: core, learner, generator, counters and history.
 
     Args:
@@ -61,6 +61,8 @@ class Trainer:
             initialization, the day schedule, the action noise, the agents' order and the minibatches;
             device: the networks' device.
     """
+
+    unit = "round"
 
     def __init__(self, *, core, settings: GAMATRSettings, seed: int, device: str = "cpu"):
         s, scenario, grid = settings, core.scenario, core.grid
@@ -146,20 +148,6 @@ class Trainer:
         for name, key in METRICS.items():
             self.curve.add(name, update[key])
         self.curve.end_unit(self.round, self.transitions)
-
-    @property
-    def history(self) -> dict[str, list[float]]:
-        """The training curve (``CurveLog.history``)."""
-        return self.curve.history
-
-    @property
-    def progress(self) -> tuple[int, int]:
-        """(rounds done, rounds in all): the unit of ``checkpoint_every``."""
-        return self.round, self.n_rounds
-
-    def advance(self) -> None:
-        """Run one round."""
-        self.run_round()
 
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:

@@ -20,7 +20,7 @@ from dswm.config import ConfigError
 from dswm.methods.hrl_tpra.features import Frame, compose_action, low_inputs, plan_inputs
 from dswm.methods.hrl_tpra.learner import Learner, Rollout
 from dswm.methods.hrl_tpra.settings import HRLTPRASettings
-from dswm.methods.trained import CurveLog
+from dswm.methods.trained import CurveLog, UnitTrainer
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "losses/high_policy": "high_policy",
@@ -38,13 +38,15 @@ def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
 
 
 
-class Trainer:
+class Trainer(UnitTrainer):
     """The state of one training run: core, learner, RNG, counters and history.
 
     Args:
         core: FleetCore over the TRAINING days; settings: HRL-TPRA's settings; seed: seeds the networks'
             initialization, the day schedule, the planner's and actors' sampling and the minibatches; device.
     """
+
+    unit = "round"
 
     def __init__(self, *, core, settings: HRLTPRASettings, seed: int, device: str = "cpu"):
         s, scenario = settings, core.scenario
@@ -147,20 +149,6 @@ class Trainer:
         for name, key in METRICS.items():
             self.curve.add(name, update[key])
         self.curve.end_unit(self.round, self.transitions)
-
-    @property
-    def history(self) -> dict[str, list[float]]:
-        """The training curve (``CurveLog.history``)."""
-        return self.curve.history
-
-    @property
-    def progress(self) -> tuple[int, int]:
-        """(rounds done, rounds in all): the unit of ``checkpoint_every``."""
-        return self.round, self.n_rounds
-
-    def advance(self) -> None:
-        """Run one round."""
-        self.run_round()
 
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:

@@ -25,7 +25,7 @@ from dswm.methods.maddpg.networks import N_ACTION, scale_demand
 from dswm.methods.maddpg.replay import Replay
 from dswm.methods.maddpg.settings import MADDPGSettings
 from dswm.sim.env import UAVFleetParallelEnv
-from dswm.methods.trained import CurveLog
+from dswm.methods.trained import CurveLog, UnitTrainer
 from prep.atomic import atomic_path
 
 METRICS = {"losses/critic": "critic", "losses/actor": "actor", "charts/q_mean": "q",
@@ -52,13 +52,15 @@ def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
 
 
 
-class Trainer:
+class Trainer(UnitTrainer):
     """The state of one training run: environment, learner, replay, RNG, counters and history.
 
     Args:
         core: FleetCore over the TRAINING days; settings: MADDPG's settings; seed: seeds the networks'
             initialization, the day schedule, exploration and batch sampling; device: the networks' device.
     """
+
+    unit = "episode"
 
     def __init__(self, *, core, settings: MADDPGSettings, seed: int, device: str = "cpu"):
         s, scenario, grid = settings, core.scenario, core.grid
@@ -137,20 +139,6 @@ class Trainer:
         for name, key in METRICS.items():
             self.curve.add(name, *(m[key] for m in losses))
         self.curve.end_unit(self.episode, self.transitions)
-
-    @property
-    def history(self) -> dict[str, list[float]]:
-        """The training curve (``CurveLog.history``)."""
-        return self.curve.history
-
-    @property
-    def progress(self) -> tuple[int, int]:
-        """(episodes done, episodes in all): the unit of ``checkpoint_every``."""
-        return self.episode, self.n_episodes
-
-    def advance(self) -> None:
-        """Run one episode."""
-        self.run_episode()
 
     # ---- checkpoint --------------------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict) -> None:
