@@ -1,7 +1,8 @@
 """Checks every hand-written torch learner (MADDPG, GA-MATR, HRL-TPRA) must pass, on one toy core of 3 UAVs.
 
 Each takes a ``make(seed, options)`` that builds the method's controller, so the method's test module states only
-what is its own.
+what is its own. The fixtures ``scenario3`` (the config scenario with 3 UAVs) and ``core`` (:func:`toy_core` on it)
+are imported by those modules.
 """
 from __future__ import annotations
 
@@ -22,6 +23,16 @@ from prep.tensor import DemandTensor, GridSpec
 
 GRID = Grid(rows=6, cols=6, cell_m=235.0)
 DAY_IDS = np.array([2, 5, 7, 11])  # tensor days of the toy core's four training days
+
+
+@pytest.fixture(scope="module")
+def scenario3(scenario):
+    return dataclasses.replace(scenario, n_uavs=3)
+
+
+@pytest.fixture(scope="module")
+def core(scenario3):
+    return toy_core(scenario3)
 
 
 def toy_core(scenario) -> FleetCore:

@@ -15,23 +15,14 @@ from dswm.methods.ga_matr.networks import (GraphAttentionPolicy, PolicyInputs, a
                                            context_tokens, local_crops, log_prob, policy_inputs)
 from dswm.methods.ga_matr.training import Trainer, day_schedule, load_cv
 from learner_checks import (DAY_IDS, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
-                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone, toy_core)
+                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone)
+from learner_checks import core, scenario3  # noqa: F401 (fixtures)
 
 SMALL = GAMATRSettings(crop_radius=1, context_side=2, d_model=16, heads=2, layers=2, ffn_hidden=32, critic_hidden=32,
                        critic_depth=2, actor_lr=1e-3, critic_lr=1e-3, gamma=0.9, gae_lambda=0.95, clip_eps=0.2,
                        epochs=2, critic_epochs=20, minibatches=2, entropy_coef=0.0, init_std=0.5, max_grad_norm=1.0,
                        fairness_weight=0.1, n_envs=2, transitions=6 * 286, log_points=6, checkpoint_every=2)
 QUICK = dataclasses.replace(SMALL, transitions=286, critic_epochs=2)  # one round of two days
-
-
-@pytest.fixture(scope="module")
-def scenario3(scenario):
-    return dataclasses.replace(scenario, n_uavs=3)
-
-
-@pytest.fixture(scope="module")
-def core(scenario3):
-    return toy_core(scenario3)
 
 
 @pytest.fixture(scope="module")
@@ -298,7 +289,8 @@ def make(seed, options):
 
 
 def test_actions_are_bounded_and_moves_stay_within_dmax(fitted, core):
-    assert check_actions_bounded_and_moves_within_dmax(fitted[0], core) > 1.0  # the policy does move the fleet
+    moved = check_actions_bounded_and_moves_within_dmax(fitted[0], core)
+    assert moved > 1.0  # the policy does move the fleet
 
 
 def test_same_seed_same_actions(core, tmp_path):
@@ -310,4 +302,5 @@ def test_save_load_round_trip_and_checks(fitted, core, tmp_path):
 
 
 def test_trains_on_the_training_days_of_a_tensor_and_evaluates_batched_as_alone(scenario3, tmp_path):
-    check_trains_on_training_days_and_evaluates_batched_as_alone(make, dataclasses.replace(QUICK, n_envs=3, transitions=429), scenario3, tmp_path)
+    options = dataclasses.replace(QUICK, n_envs=3, transitions=429)
+    check_trains_on_training_days_and_evaluates_batched_as_alone(make, options, scenario3, tmp_path)

@@ -20,8 +20,8 @@ from dswm.methods.hrl_tpra.training import Trainer, day_schedule
 from dswm.sim.core import Grid, build_observation
 from dswm.sim.fleet import CHARGING, FleetState
 from learner_checks import (DAY_IDS, GRID, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
-                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone, contexts,
-                            toy_core)
+                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone, contexts)
+from learner_checks import core, scenario3  # noqa: F401 (fixtures)
 
 SMALL = HRLTPRASettings(macro_slots=6, candidates=8, pointer_hidden=16, tanh_clip=10.0, crop_radius=1,
                         actor_hidden=16, actor_depth=2, fine_scale=0.5, log_std_init=-0.5, gamma=0.9,
@@ -30,16 +30,6 @@ SMALL = HRLTPRASettings(macro_slots=6, candidates=8, pointer_hidden=16, tanh_cli
                         batch_size=32, high_batch_size=16, log_points=3, checkpoint_every=2)
 QUICK = dataclasses.replace(SMALL, day_episodes=2, n_epochs=1, high_epochs=1, batch_size=143,
                             high_batch_size=48)  # one round of two days
-
-
-@pytest.fixture(scope="module")
-def scenario3(scenario):
-    return dataclasses.replace(scenario, n_uavs=3)
-
-
-@pytest.fixture(scope="module")
-def core(scenario3):
-    return toy_core(scenario3)
 
 
 @pytest.fixture(scope="module")
@@ -335,7 +325,8 @@ def make(seed, options):
 
 
 def test_actions_are_bounded_and_moves_stay_within_dmax(fitted, core):
-    assert check_actions_bounded_and_moves_within_dmax(fitted[0], core) > 0.1 * core.scenario.d_max_m  # the policy does move the fleet
+    moved = check_actions_bounded_and_moves_within_dmax(fitted[0], core)
+    assert moved > 0.1 * core.scenario.d_max_m  # the policy does move the fleet
 
 
 def test_same_seed_same_actions(core, tmp_path):
@@ -343,8 +334,10 @@ def test_same_seed_same_actions(core, tmp_path):
 
 
 def test_save_load_round_trip_and_checks(fitted, core, tmp_path):
-    check_save_load(fitted[0], make, SMALL, dataclasses.replace(SMALL, actor_hidden=8), core, tmp_path, slots=8)  # across a macro-slot boundary
+    # 8 slots: across a macro-slot boundary
+    check_save_load(fitted[0], make, SMALL, dataclasses.replace(SMALL, actor_hidden=8), core, tmp_path, slots=8)
 
 
 def test_trains_on_the_training_days_of_a_tensor_and_evaluates_batched_as_alone(scenario3, tmp_path):
-    check_trains_on_training_days_and_evaluates_batched_as_alone(make, dataclasses.replace(QUICK, n_envs=3, day_episodes=3), scenario3, tmp_path)
+    options = dataclasses.replace(QUICK, n_envs=3, day_episodes=3)
+    check_trains_on_training_days_and_evaluates_batched_as_alone(make, options, scenario3, tmp_path)

@@ -16,23 +16,14 @@ from dswm.methods.maddpg.networks import (CentralCritic, agent_spread, joint_obs
 from dswm.methods.maddpg.replay import window_maps
 from dswm.methods.maddpg.training import Trainer, day_schedule, parallel_env
 from learner_checks import (DAY_IDS, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
-                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone, toy_core)
+                            check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone)
+from learner_checks import core, scenario3  # noqa: F401 (fixtures)
 
 SMALL = MADDPGSettings(crop_radius=1, index_embed=4, actor_hidden=16, actor_depth=2, critic_hidden=32, critic_depth=2,
                        actor_lr=1e-3, critic_lr=1e-3, gamma=0.5, tau=0.05, noise_std=0.2, action_reg=1e-3,
                        grad_clip=1.0, buffer_size=1000, batch_size=32, warmup=100, transitions=2 * 143,
                        update_every=1, gradient_steps=2, log_points=10, checkpoint_every=1)
 QUICK = dataclasses.replace(SMALL, transitions=143, gradient_steps=1)  # one day-episode, 44 gradient steps
-
-
-@pytest.fixture(scope="module")
-def scenario3(scenario):
-    return dataclasses.replace(scenario, n_uavs=3)
-
-
-@pytest.fixture(scope="module")
-def core(scenario3):
-    return toy_core(scenario3)
 
 
 @pytest.fixture(scope="module")
@@ -235,7 +226,8 @@ def make(seed, options):
 
 
 def test_actions_are_bounded_and_moves_stay_within_dmax(fitted, core):
-    assert check_actions_bounded_and_moves_within_dmax(fitted[0], core) > 0.1 * core.scenario.d_max_m  # the policy does move the fleet
+    moved = check_actions_bounded_and_moves_within_dmax(fitted[0], core)
+    assert moved > 0.1 * core.scenario.d_max_m  # the policy does move the fleet
 
 
 def test_same_seed_same_actions(core, tmp_path):
@@ -247,4 +239,5 @@ def test_save_load_round_trip_and_checks(fitted, core, tmp_path):
 
 
 def test_trains_on_the_training_days_of_a_tensor_and_evaluates_batched_as_alone(scenario3, tmp_path):
-    check_trains_on_training_days_and_evaluates_batched_as_alone(make, dataclasses.replace(QUICK, transitions=3 * 143, warmup=400), scenario3, tmp_path)
+    options = dataclasses.replace(QUICK, transitions=3 * 143, warmup=400)
+    check_trains_on_training_days_and_evaluates_batched_as_alone(make, options, scenario3, tmp_path)
