@@ -24,7 +24,7 @@ from typing import Any, Iterable, Mapping
 import jsonschema
 import yaml
 
-from dswm.config import ConfigError, build, canonical_json, stable_hash, to_plain
+from dswm.config import ConfigError, build, canonical_json, merge, stable_hash, to_plain
 from dswm.methods import registry
 from dswm.methods.search import SearchSettings
 from dswm.sim.scenario import CALIBRATE, Scenario
@@ -213,6 +213,71 @@ class TablesSettings:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class DoProbeSettings:
+    """config.yaml ``figures.do_probe``: the counterfactual probe of paper Fig. ablation (b)."""
+
+    methods: tuple[str, ...]
+    """Methods whose imagined demand is scaled (those of ``methods.run``)."""
+    scales: tuple[float, ...]
+    """The factors s of the imagined demand at planning time (s = 1 is the method's own evaluation)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ScalingSettings:
+    """config.yaml ``figures.scaling``: the two one-dimensional sweeps of paper Fig. scaling."""
+
+    methods: tuple[str, ...]
+    fleet_sizes: tuple[int, ...]
+    """K of each run of the fleet sweep (the scenario's own K is the reference point)."""
+    intensity_scales: tuple[float, ...]
+    """Factors of the demand intensity u of each run of the intensity sweep."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SampleEfficiencySettings:
+    """config.yaml ``figures.sample_efficiency``: the test-day probe at fixed training checkpoints."""
+
+    methods: tuple[str, ...]
+    fractions: tuple[float, ...]
+    """Checkpoints as fractions of each method's training budget."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class WmQualitySettings:
+    """config.yaml ``figures.wm_quality``."""
+
+    horizon: int
+    """Imagination steps of the demand-RMSE curve."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FiguresSettings:
+    """config.yaml ``figures`` merged with ``figures.budgets.<profile>``: the figures' dataset and the sizes of the
+    extra runs behind them (none of which enters a table)."""
+
+    dataset: str
+    seeds: tuple[int, ...]
+    eval_days: EvalDayLimits
+    do_probe: DoProbeSettings
+    scaling: ScalingSettings
+    sample_efficiency: SampleEfficiencySettings
+    wm_quality: WmQualitySettings
+
+    def present(self, names, settings: "Settings") -> list[str]:
+        """The methods of ``names`` that ``methods.run`` evaluates on :attr:`dataset`, in the order given."""
+        on = settings.methods_on(self.dataset)
+        return [n for n in names if n in on]
+
+
+def figures_settings(config: Mapping[str, Any], profile: str) -> FiguresSettings:
+    """``figures`` of a validated config with the selected profile's ``figures.budgets`` entry merged in."""
+    section = dict(config["figures"])
+    budgets = section.pop("budgets") or {}
+    key = f"figures (with figures.budgets.{profile})" if profile in budgets else "figures"
+    return build(FiguresSettings, merge(section, budgets.get(profile)), key)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MethodSettings:
     """One method of ``methods.run``: its registration and its typed settings."""
 
@@ -266,6 +331,8 @@ class Settings:
     """None in the audit's slice (the audit reads no selection)."""
     mlflow: MlflowSettings
     tables: TablesSettings
+    figures: FiguresSettings | None = None
+    """None in a job's slice that reads no figure setting (the audit's)."""
     datasets: DatasetsConfig
     display: Display | None
     """None in a job's slice: display settings travel beside it."""
@@ -371,15 +438,32 @@ def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
         selection=build(SelectionSettings, config["selection"], "selection"),
         mlflow=build(MlflowSettings, config["mlflow"], "mlflow"),
         tables=build(TablesSettings, config["tables"], "tables"),
+        figures=figures_settings(config, profile),
         datasets=build(DatasetsConfig, config["datasets"], "datasets"),
         display=display)
     if settings.tables.main_dataset not in settings.run.datasets:
         raise ConfigError(f"config.yaml: key 'tables.main_dataset' is {settings.tables.main_dataset!r}, which "
                           f"profile {profile!r} does not run (profiles.{profile}.datasets: "
                           f"{', '.join(settings.run.datasets)})")
+    check_figures(settings)
     if root is not None:
         check_raw_files(settings, root)
     return settings
+
+
+def check_figures(settings: Settings) -> None:
+    """``figures.dataset`` is one the profile runs, and every method ``figures`` names is registered."""
+    fig = settings.figures
+    if fig.dataset not in settings.run.datasets:
+        raise ConfigError(f"config.yaml: key 'figures.dataset' is {fig.dataset!r}, which profile "
+                          f"{settings.profile!r} does not run (profiles.{settings.profile}.datasets: "
+                          f"{', '.join(settings.run.datasets)})")
+    for key, names in (("do_probe", fig.do_probe.methods), ("scaling", fig.scaling.methods),
+                       ("sample_efficiency", fig.sample_efficiency.methods)):
+        for name in names:
+            if name not in registry.BUILTIN and name not in settings.methods:
+                raise ConfigError(f"config.yaml: key 'figures.{key}.methods' names {name!r}, which is not a "
+                                  f"registered method (expected one of {', '.join(sorted(registry.BUILTIN))})")
 
 
 def check_profile_datasets(config: Mapping[str, Any], run: Mapping[str, Any]) -> None:
@@ -560,7 +644,7 @@ def tables_slice(settings: Settings) -> dict:
 
 def audit_slice(settings: Settings) -> dict:
     """What the audit reads: every setting but the display ones and the selection's."""
-    return to_plain(dataclasses.replace(settings, display=None, selection=None))
+    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None))
 
 
 def select_slice(settings: Settings) -> dict:

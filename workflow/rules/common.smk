@@ -89,3 +89,26 @@ def reference_meta(dataset):
     from prep.pipeline import reference_input
 
     return reference_input(SETTINGS.datasets.common, dataset)
+
+
+# ---- figures (workflow/rules/figures.smk and the rule files of the extra runs) ----
+FIGURES_SETTINGS = SETTINGS.figures
+"""config.yaml ``figures`` merged with ``figures.budgets.<profile>``."""
+FIGURE_DIR = "results/figures"
+FIGURE_TARGETS = []
+"""Every file the `figures` target asks for; each figure rule file appends its figures' PNG, PDF and CSV."""
+
+
+def figure_outputs(name, category, subcategory=None):
+    """The outputs of figure ``name``: PNG (in the Snakemake report, captioned by workflow/report/<name>.rst),
+    PDF and CSV under results/figures/; the three are added to the `figures` target."""
+    files = {ext: f"{FIGURE_DIR}/{name}.{ext}" for ext in ("png", "pdf", "csv")}
+    FIGURE_TARGETS.extend(files.values())
+    labels = {"figure": name}
+    return {
+        "png": report(files["png"], caption=f"../report/{name}.rst", category=category, subcategory=subcategory,
+                      labels=labels),
+        "pdf": files["pdf"],
+        "csv": report(files["csv"], caption=f"../report/{name}.rst", category=category,
+                      subcategory=subcategory, labels={"figure": name, "file": "data (CSV)"}),
+    }

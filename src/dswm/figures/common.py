@@ -1,0 +1,91 @@
+"""What every figure shares: the Agg backend, the corner note, and the atomic PNG + PDF + CSV writer."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import polars as pl  # noqa: E402
+
+DPI = 150
+"""Raster resolution of the PNG files (the PDF is vector)."""
+
+
+def outputs(stem: str | Path) -> dict[str, Path]:
+    """{"png", "pdf", "csv"} paths of the figure ``stem`` (a path without suffix, e.g. results/figures/main)."""
+    stem = Path(stem)
+    return {ext: stem.with_name(stem.name + "." + ext) for ext in ("png", "pdf", "csv")}
+
+
+def corner_note(fig, *, profile: str, source: str | Mapping[str, str]) -> None:
+    """Write "profile: P · data: S" in the figure's lower right corner.
+
+    Args:
+        source: the data source (``meta["source"]``: demo or raw), or {dataset: source}.
+    """
+    if isinstance(source, Mapping):
+        source = ", ".join(f"{d}: {s}" for d, s in source.items())
+    fig.text(0.995, 0.005, f"profile: {profile} · data: {source}", ha="right", va="bottom", fontsize=7,
+             color="0.35")
+
+
+def _atomic(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=path.suffix)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_figure(fig, data: pl.DataFrame, *, png: str | Path, pdf: str | Path, csv: str | Path, profile: str,
+                source: str | Mapping[str, str], caption: str) -> None:
+    """Write ``fig`` as PNG and PDF and ``data`` (the numbers it draws) as CSV, each atomically, then close it.
+
+    Args:
+        caption: the figure's caption, naming the paper's figure it reproduces ("Paper Fig. 3: ..."); drawn as
+            the figure's suptitle footer and written as the CSV's first comment line.
+        profile, source: see :func:`corner_note`.
+    """
+    corner_note(fig, profile=profile, source=source)
+    fig.text(0.005, 0.005, caption, ha="left", va="bottom", fontsize=7, wrap=True)
+    _atomic(Path(png), lambda p: fig.savefig(p, dpi=DPI, format="png"))
+    _atomic(Path(pdf), lambda p: fig.savefig(p, format="pdf"))
+    plt.close(fig)
+
+    def write_csv(p):
+        with open(p, "w", encoding="utf-8") as fh:
+            fh.write(f"# {caption} (profile: {profile})\n")
+            data.write_csv(fh)
+
+    _atomic(Path(csv), write_csv)
+
+
+def read_csv(path: str | Path) -> pl.DataFrame:
+    """A CSV written by :func:`save_figure` back (its caption comment line skipped)."""
+    return pl.read_csv(path, comment_prefix="#")
+
+
+def read_days(paths: Iterable[str | Path]) -> pl.DataFrame:
+    """The per-day result files ``paths`` (days.parquet) as one frame, in the order given."""
+    frames = [pl.read_parquet(p) for p in paths]
+    if not frames:
+        raise ValueError("no result files given: expected at least one days.parquet")
+    return pl.concat(frames, how="diagonal_relaxed")
+
+
+def mean_std(df: pl.DataFrame, by: Sequence[str], value: str) -> pl.DataFrame:
+    """Per ``by`` group: the mean over seeds of each seed's mean of ``value``, its std over seeds (0 for one
+    seed) and the number of seeds, as columns ``<value>``, ``<value>_std`` and ``seeds``."""
+    per_seed = df.group_by([*by, "seed"], maintain_order=True).agg(pl.col(value).mean())
+    return per_seed.group_by(list(by), maintain_order=True).agg(
+        pl.col(value).mean().alias(value), pl.col(value).std(ddof=0).fill_null(0.0).alias(value + "_std"),
+        pl.len().alias("seeds"))
