@@ -33,7 +33,9 @@ def write_results(root, profile="demo"):
                 for d, v in days.items()]
         df = pl.DataFrame(rows).with_columns(pl.lit(ds).alias("dataset"), pl.lit(method).alias("method"),
                                              pl.lit(seed).alias("seed"), pl.lit(profile).alias("profile"),
-                                             pl.lit("d").alias("label"), pl.lit(1.0).alias("jain"))
+                                             pl.lit("d").alias("label"), pl.lit(1.0).alias("jain"),
+                                             (1000.0 + 100.0 * pl.col("sr_mean")).alias("energy_kj_per_slot"),
+                                             (pl.col("sr_mean") / 2).alias("energy_efficiency"))
         p = root / ds / method / f"seed{seed}" / "days.parquet"
         p.parent.mkdir(parents=True)
         df.write_parquet(p)
@@ -76,6 +78,11 @@ def test_main_table_numbers_by_hand(tmp_path):
     assert float(greedy["weekday_mean"]) == pytest.approx(0.80)
     assert float(greedy["holiday_mean"]) == pytest.approx(0.835)
     assert float(rows[2]["weekday_std"]) == 0.0
+    # Table III (b), (c) and fairness: energy = 1000 + 100 SR, efficiency = SR / 2 per day, as the served ratio
+    assert float(static["energy_weekday_mean"]) == pytest.approx(1073.0)
+    assert float(static["energy_weekday_std"]) == pytest.approx(1.41421356, abs=1e-6)
+    assert float(static["efficiency_holiday_mean"]) == pytest.approx(0.3825)
+    assert float(static["jain_weekday_mean"]) == 1.0
 
 
 def test_cross_table_one_row_per_method_and_dataset(tmp_path):
@@ -98,7 +105,9 @@ def test_tables_state_the_profile_and_where_the_data_came_from(tmp_path):
             text = (tmp_path / "tables" / f"{name}.{ext}").read_text()
             assert "profile: demo" in text and "Milan: demo" in text and "Shanghai: raw" in text
     md = (tmp_path / "tables" / "milan_main.md").read_text()
-    assert "| Static (K-means) | deployment | 0.730±0.014 | 0.765±0.007 | 2 |" in md
+    # energy 1000 + 100 SR per day: weekday seed means 1072 and 1074; efficiency SR/2; Jain 1 on every day
+    assert ("| Static (K-means) | deployment | 0.730±0.014 | 0.765±0.007 | 1073.0±1.4 | 1076.5±0.7 | 0.365±0.007 | "
+            "0.383±0.004 | 1.000±0.000 | 1.000±0.000 | 2 |") in md
     tex = (tmp_path / "tables" / "milan_main.tex").read_text()
     assert r"0.730$\pm$0.014" in tex and r"\toprule" in tex and r"\label{tab:milan}" in tex
 

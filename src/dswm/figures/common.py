@@ -83,9 +83,10 @@ def read_days(paths: Iterable[str | Path]) -> pl.DataFrame:
 
 
 def mean_std(df: pl.DataFrame, by: Sequence[str], value: str) -> pl.DataFrame:
-    """Per ``by`` group: the mean over seeds of each seed's mean of ``value``, its std over seeds (0 for one
-    seed) and the number of seeds, as columns ``<value>``, ``<value>_std`` and ``seeds``."""
+    """Per ``by`` group: the mean over seeds of each seed's mean of ``value``, its sample std over seeds (ddof=1,
+    as in the tables; 0 for one seed) and the number of seeds, as columns ``<value>``, ``<value>_std`` and
+    ``seeds``."""
     per_seed = df.group_by([*by, "seed"], maintain_order=True).agg(pl.col(value).mean())
     return per_seed.group_by(list(by), maintain_order=True).agg(
-        pl.col(value).mean().alias(value), pl.col(value).std(ddof=0).fill_null(0.0).alias(value + "_std"),
+        pl.col(value).mean().alias(value), pl.col(value).std(ddof=1).fill_null(0.0).alias(value + "_std"),
         pl.len().alias("seeds"))

@@ -1,7 +1,9 @@
 """The paper's two result tables, assembled from the per-day result files only (never logs or MLflow).
 
 * ``<main>_main`` (Table III; ``milan_main`` by default): per method, the weekday (ID) and holiday (OOD) served
-  ratio on ``tables.main_dataset``, mean and standard deviation over seeds, rows grouped by method class.
+  ratio on ``tables.main_dataset``, mean and standard deviation over seeds, rows grouped by method class; then
+  energy per slot (kJ), energy efficiency and Jain's index per split, the same way (paper Table III (b), (c) and
+  the fairness text).
 * ``cross_dataset`` (Table IV): the same per (method, dataset).
 
 A seed's score on a split is the mean of its days' ``sr_mean``; the table reports mean and sample standard
@@ -27,14 +29,19 @@ from prep.tensor import read_meta
 
 ROOM_COLUMNS = ["dataset", "split", "low", "high", "low_mean", "high_mean", "room", "method", "method_mean",
                 "filled"]
-MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
+EXTRA_METRICS = {"energy": "energy_kj_per_slot", "efficiency": "energy_efficiency", "jain": "jain"}
+"""Table III's metrics besides the served ratio: {column prefix: days.parquet column}."""
+EXTRA_LABELS = {"energy": "Energy (kJ/slot)", "efficiency": "Efficiency", "jain": "Jain"}
+MAIN_COLUMNS = ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds",
+                *(f"{p}_{w}_{s}" for p in EXTRA_METRICS for w in ("weekday", "holiday") for s in ("mean", "std"))]
 CROSS_COLUMNS = ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std", "n_seeds"]
 DATASET_LABELS = {"milan": "Milan", "shanghai": "Shanghai", "yjmob": "YJMob"}
 REQUIRED = {"dataset", "method", "seed", "split", "day", "sr_mean", "profile"}
 
 
 def read_results(paths: Iterable[str | Path]) -> pl.DataFrame:
-    """Concatenate per-day result files; refuse a file that lacks a required column or has no rows."""
+    """Concatenate per-day result files; refuse a file that lacks a required column or has no rows. The columns of
+    :data:`EXTRA_METRICS` are kept (null where a file lacks one)."""
     frames = []
     for p in paths:
         df = pl.read_parquet(p)
@@ -43,27 +50,32 @@ def read_results(paths: Iterable[str | Path]) -> pl.DataFrame:
             raise ValueError(f"{p}: result file lacks column(s) {sorted(missing)}; expected {sorted(REQUIRED)}")
         if df.height == 0:
             raise ValueError(f"{p}: result file has no rows; expected one row per evaluated day")
-        frames.append(df.select(sorted(REQUIRED)))
+        extra = [pl.col(c).cast(pl.Float64) if c in df.columns else pl.lit(None, pl.Float64).alias(c)
+                 for c in EXTRA_METRICS.values()]
+        frames.append(df.select(*sorted(REQUIRED), *extra))
     if not frames:
         raise ValueError("no result files given; expected results/{dataset}/{method}/seed{seed}/days.parquet")
     return pl.concat(frames)
 
 
-def summarize(days: pl.DataFrame) -> pl.DataFrame:
+def summarize(days: pl.DataFrame, value: str = "sr_mean", prefix: str = "") -> pl.DataFrame:
     """Per (dataset, method): mean/std over seeds of each seed's mean day score, per split.
 
     Args:
-        days: rows (dataset, method, seed, split, day, sr_mean).
+        days: rows (dataset, method, seed, split, day, ``value``).
+        value: the per-day column summarized (served ratio by default).
+        prefix: put before every output column but dataset, method and n_seeds (e.g. "energy_").
 
     Returns:
-        Columns dataset, method, weekday_mean, weekday_std, holiday_mean, holiday_std, n_seeds.
+        Columns dataset, method, <prefix>weekday_mean, <prefix>weekday_std, <prefix>holiday_mean,
+        <prefix>holiday_std, n_seeds. A seed whose days lack ``value`` (null) gives a null mean.
     """
-    per_seed = days.group_by("dataset", "method", "seed", "split").agg(pl.col("sr_mean").mean().alias("score"))
+    per_seed = days.group_by("dataset", "method", "seed", "split").agg(pl.col(value).mean().alias("score"))
     out = None
     for split, word in (("id", "weekday"), ("ood", "holiday")):
         s = (per_seed.filter(pl.col("split") == split).group_by("dataset", "method")
-             .agg(pl.col("score").mean().alias(f"{word}_mean"),
-                  pl.col("score").std(ddof=1).fill_null(0.0).alias(f"{word}_std"),
+             .agg(pl.col("score").mean().alias(f"{prefix}{word}_mean"),
+                  pl.col("score").std(ddof=1).fill_null(0.0).alias(f"{prefix}{word}_std"),
                   pl.col("seed").n_unique().alias(f"{word}_n")))
         out = s if out is None else out.join(s, on=["dataset", "method"], how="full", coalesce=True)
     bad = out.filter(pl.col("weekday_n").is_null() | pl.col("holiday_n").is_null()
@@ -91,6 +103,11 @@ def _csv(rows: list[dict], columns: list[str]) -> str:
 
 def _fmt(mean: float, std: float, n: int, d: int) -> str:
     return f"{mean:.{d}f}±{std:.{d}f}" if n > 1 else f"{mean:.{d}f}"
+
+
+def _fmt_opt(mean: float | None, std: float | None, n: int, d: int) -> str:
+    """:func:`_fmt`, or "--" where the result files lack the metric."""
+    return "--" if mean is None else _fmt(mean, std, n, d)
 
 
 def _tex_escape(text: str) -> str:
@@ -146,29 +163,39 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         raise ValueError(f"config.yaml: key 'tables.main_dataset' is {main_ds!r}, which this run does not evaluate "
                          f"(datasets: {', '.join(meta_paths)})")
     main = summary.filter(pl.col("dataset") == main_ds)
+    for pre, col in EXTRA_METRICS.items():
+        more = summarize(days.filter(pl.col("dataset") == main_ds), col, f"{pre}_").drop("n_seeds")
+        main = main.join(more, on=["dataset", "method"], how="left")
     by_method = {r["method"]: r for r in main.iter_rows(named=True)}
     main_rows = [{"method": m, "class": classes[m], **{k: by_method[m][k] for k in MAIN_COLUMNS[2:]}}
                  for m in order if m in by_method]
     main_df = pl.DataFrame(main_rows, schema={c: pl.Float64 if "mean" in c or "std" in c else
                                               (pl.Int64 if c == "n_seeds" else pl.String) for c in MAIN_COLUMNS})
     title = (f"{DATASET_LABELS.get(main_ds, main_ds)} main results: served ratio "
-             f"({id_label} ID / {ood_label} OOD), mean±std over seeds")
-    md = [f"## {title}", "", f"_{note}_", "", f"| Method | Class | {id_label} | {ood_label} | Seeds |",
-          "|---|---|---|---|---|"]
+             f"({id_label} ID / {ood_label} OOD), then energy per slot, energy efficiency and Jain's index "
+             f"({id_label} / {ood_label}), mean±std over seeds")
+    extra_heads = [f"{EXTRA_LABELS[p]} {lab}" for p in EXTRA_METRICS for lab in (id_label, ood_label)]
+    md = [f"## {title}", "", f"_{note}_", "",
+          f"| Method | Class | {id_label} | {ood_label} | " + " | ".join(extra_heads) + " | Seeds |",
+          "|---|---|---|---|" + "---|" * len(extra_heads) + "---|"]
     tex_rows = []
     for r in main_rows:
         label = specs[r["method"]].label
         wk = _fmt(r["weekday_mean"], r["weekday_std"], r["n_seeds"], d)
         hd = _fmt(r["holiday_mean"], r["holiday_std"], r["n_seeds"], d)
-        md.append(f"| {label} | {r['class']} | {wk} | {hd} | {r['n_seeds']} |")
+        extra = [_fmt_opt(r[f"{p}_{w}_mean"], r[f"{p}_{w}_std"], r["n_seeds"], 1 if p == "energy" else d)
+                 for p in EXTRA_METRICS for w in ("weekday", "holiday")]
+        md.append(f"| {label} | {r['class']} | {wk} | {hd} | " + " | ".join(extra) + f" | {r['n_seeds']} |")
         tex_rows.append(f"{_tex_escape(label)} & {_tex_escape(r['class'])} & {_tex_escape(wk)} & "
-                        f"{_tex_escape(hd)} \\\\")
+                        f"{_tex_escape(hd)} & " + " & ".join(_tex_escape(e) for e in extra) + " \\\\")
     main_note = room_note([r for r in room if r["dataset"] == main_ds], specs, tables_cfg["split_labels"], d,
                           tables_cfg["room"]["min_room"])
     if main_note:
         md += ["", main_note]
-    tex = _tex_table(caption=f"{title}. {note}. {main_note}".rstrip(), label=f"tab:{main_ds}", spec="@{}llcc@{}",
-                     header=f"Method & Class & {id_label} & {ood_label} \\\\", rows=tex_rows)
+    tex = _tex_table(caption=f"{title}. {note}. {main_note}".rstrip(), label=f"tab:{main_ds}",
+                     spec="@{}llcc" + "c" * len(extra_heads) + "@{}",
+                     header=f"Method & Class & {id_label} & {ood_label} & "
+                            + " & ".join(_tex_escape(h) for h in extra_heads) + " \\\\", rows=tex_rows)
     write_text(out_dir / f"{main_ds}_main.md", "\n".join(md) + "\n")
     write_text(out_dir / f"{main_ds}_main.tex", tex)
     write_text(out_dir / f"{main_ds}_main.csv", _csv(main_rows, MAIN_COLUMNS))
