@@ -8,6 +8,11 @@ min_version("9.0")
 configfile: "config.yaml"
 
 
+# The Snakemake report (`snakemake --cores 2 --report results/report.html figures`, once `figures` has run): every
+# table and figure with its caption (workflow/report/*.rst), grouped in categories.
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/prep.smk"
 include: "workflow/rules/mlflow.smk"
@@ -21,3 +26,8 @@ include: "workflow/rules/extra.smk"
 include: "workflow/rules/probes.smk"
 include: "workflow/rules/wm.smk"
 include: "workflow/rules/figures.smk"
+
+
+# `snakemake --cores 2` with no target runs `tables`. Its `default_target: True` sits in an included file, and
+# Snakemake restores the default target when an include returns, so it is set here in the main Snakefile.
+workflow.default_target = "tables"

@@ -25,6 +25,10 @@ AUDIT_INPUTS = dict(
     # present: declared then, so a run of calibrate finishes before the audit reads it and a new record
     # re-audits.
     calibration=lambda wildcards: [p for p in rules.calibrate.output if INTENSITY or Path(p).exists()],
+    # The sample-efficiency probe's files (workflow/rules/probes.smk), optional as the calibration record: the
+    # audit reads those present and proves none of their numbers is in a table's source
+    # (protocol.probes_out_of_tables); a run without probes (after `tables` alone) reads none.
+    probes=lambda wildcards: [p for p in probe_files() if Path(p).exists()],
 )
 """Every file the audit reads that a rule writes: the inputs of `audit_report`, `audit` and the `tables` target."""
 
@@ -34,7 +38,8 @@ rule audit_report:
         **AUDIT_INPUTS,
     output:
         json="results/audit/report.json",
-        md="results/audit/report.md",
+        md=report("results/audit/report.md", caption="../report/audit.rst", category="Leakage audit",
+                  labels={"report": "audit"}),
     params:
         settings=AUDIT_SETTINGS,
         configfiles=S.Untracked([str(f) for f in workflow.configfiles]),

@@ -1,1 +1,67 @@
 # The paper's figures (results/figures/*.{png,pdf,csv}), drawn from result files only, and the `figures` target.
+# The figures of the evaluation results are drawn once the tables are (their audit gate passed); the rule files
+# of the extra runs (extra.smk, probes.smk, wm.smk) add their own figures to FIGURE_TARGETS.
+
+
+rule figure_main:
+    input:
+        results=result_files(),
+        **meta_files(),
+        tables=rules.build_tables.output.main_csv,  # drawn once the audit let the tables be built
+    output:
+        **figure_outputs("main", "Main results"),
+    params:
+        settings=S.param(S.tables_slice(SETTINGS)),
+    log:
+        "logs/figures/main.log",
+    script:
+        "../scripts/figure_results.py"
+
+
+rule figure_ood:
+    input:
+        results=result_files(),
+        **meta_files(),
+        tables=rules.build_tables.output.main_csv,
+    output:
+        **figure_outputs("ood", "Main results"),
+    params:
+        settings=S.param(S.tables_slice(SETTINGS)),
+    log:
+        "logs/figures/ood.log",
+    script:
+        "../scripts/figure_results.py"
+
+
+rule figure_cross_dataset:
+    input:
+        results=result_files(),
+        **meta_files(),
+        tables=rules.build_tables.output.cross_csv,
+    output:
+        **figure_outputs("cross_dataset", "Main results"),
+    params:
+        settings=S.param(S.tables_slice(SETTINGS)),
+    log:
+        "logs/figures/cross_dataset.log",
+    script:
+        "../scripts/figure_results.py"
+
+
+rule figure_eda:
+    input:
+        **{f"eda_{d}": rules.eda.output.stats.format(dataset=d) for d in DATASETS},
+    output:
+        **figure_outputs("eda", "Data"),
+    params:
+        settings=S.param(S.tables_slice(SETTINGS)),
+    log:
+        "logs/figures/eda.log",
+    script:
+        "../scripts/figure_results.py"
+
+
+# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed).
+rule figures:
+    input:
+        FIGURE_TARGETS,

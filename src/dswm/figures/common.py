@@ -23,14 +23,14 @@ def outputs(stem: str | Path) -> dict[str, Path]:
 
 
 def corner_note(fig, *, profile: str, source: str | Mapping[str, str]) -> None:
-    """Write "profile: P · data: S" in the figure's lower right corner.
+    """Write "profile: P · data: S" in the figure's upper right corner.
 
     Args:
         source: the data source (``meta["source"]``: demo or raw), or {dataset: source}.
     """
     if isinstance(source, Mapping):
         source = ", ".join(f"{d}: {s}" for d, s in source.items())
-    fig.text(0.995, 0.005, f"profile: {profile} · data: {source}", ha="right", va="bottom", fontsize=7,
+    fig.text(0.995, 0.995, f"profile: {profile} · data: {source}", ha="right", va="top", fontsize=7,
              color="0.35")
 
 
