@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from audits import crop, derived, protocol, splits, statistics, training
+from audits import crop, derived, probes, protocol, splits, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -41,6 +41,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     training.check_training_days,
     training.check_checkpoints,
     training.check_evaluated_models,
+    probes.check_probes_out_of_tables,
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 
@@ -49,7 +50,8 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     """Runs one check; a check that crashes is a failed check (the audit never passes on an error)."""
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
-    family = {"derived": "statistics", "crop": "statistics", "training": "protocol"}.get(family, family)
+    family = {"derived": "statistics", "crop": "statistics", "training": "protocol",
+              "probes": "protocol"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback

@@ -74,9 +74,12 @@ def seed_score(work, ds, method, split):
 
 
 def test_both_tables_have_every_method_and_dataset_with_numbers_from_the_result_files(run):
+    from dswm.protocol.tables import MAIN_COLUMNS
+
     main = read_csv(run / "results" / "tables" / "milan_main.csv")
-    assert list(main[0]) == ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std",
-                             "n_seeds"]
+    assert list(main[0]) == MAIN_COLUMNS
+    assert MAIN_COLUMNS[:7] == ["method", "class", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std",
+                                "n_seeds"]  # the served-ratio columns first, then energy, efficiency and Jain
     assert sorted(r["method"] for r in main) == sorted(METHODS)
     classes = [(r["method"], r["class"]) for r in main if r["method"] in BASELINES]
     assert classes == [("greedy", "model-free"), ("static", "deployment"), ("oracle", "upper bound")]
@@ -84,6 +87,10 @@ def test_both_tables_have_every_method_and_dataset_with_numbers_from_the_result_
         assert float(r["weekday_mean"]) == pytest.approx(seed_score(run, "milan", r["method"], "id"), abs=1e-9)
         assert float(r["holiday_mean"]) == pytest.approx(seed_score(run, "milan", r["method"], "ood"), abs=1e-9)
         assert (r["n_seeds"], float(r["weekday_std"])) == ("1", 0.0)
+        days = pl.read_parquet(run / "results" / "milan" / r["method"] / "seed0" / "days.parquet")
+        assert float(r["jain_holiday_mean"]) == pytest.approx(days.filter(pl.col("split") == "ood")["jain"].mean())
+        assert float(r["energy_weekday_mean"]) == pytest.approx(
+            days.filter(pl.col("split") == "id")["energy_kj_per_slot"].mean())
     cross = read_csv(run / "results" / "tables" / "cross_dataset.csv")
     assert list(cross[0]) == ["method", "dataset", "weekday_mean", "weekday_std", "holiday_mean", "holiday_std",
                               "n_seeds"]

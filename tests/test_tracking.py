@@ -42,6 +42,26 @@ def test_init_creates_the_store_and_the_experiment_once(store, db, tmp_path):
     assert info["artifact_location"] == (tmp_path / "mlartifacts").resolve().as_uri()
 
 
+def test_the_experiment_opens_on_the_runs_view_and_a_run_records_its_demand_tensor(store, tmp_path):
+    cfg, info, client = store
+    assert client.get_experiment(info["experiment_id"]).tags["mlflow.experimentKind"] == "custom_model_development"
+    tensor = tmp_path / "data" / "milan"
+    tensor.mkdir(parents=True)
+    (tensor / "demand.parquet").write_bytes(b"demand of milan")
+    from hashlib import sha256
+
+    from dswm.pipeline.jobs import log_demand_input
+
+    with open_job(cfg, tmp_path) as run:
+        full = log_demand_input(run, tensor, "milan", "evaluation")
+    assert full == sha256(b"demand of milan").hexdigest()
+    (r,) = runs(client, info)
+    (entry,) = r.inputs.dataset_inputs
+    assert (entry.dataset.name, entry.dataset.digest) == ("milan", full[:16])
+    assert (tensor / "demand.parquet").resolve().as_uri() in entry.dataset.source
+    assert [(t.key, t.value) for t in entry.tags] == [("mlflow.data.context", "evaluation")]
+
+
 def test_a_job_run_has_tags_params_batched_metrics_and_artifacts(store, tmp_path):
     cfg, info, client = store
     result = tmp_path / "days.parquet"

@@ -617,15 +617,19 @@ def calibrate_slice(settings: Settings) -> dict:
     return {"calibration": to_plain(settings.calibration), "scenario": scenario, "runtime": runtime(settings)}
 
 
-def train_slice(settings: Settings, method: str) -> dict:
+def train_slice(settings: Settings, method: str, dataset: str | None = None, seed: int | None = None) -> dict:
     """What a ``train`` job of ``method`` reads: the profile, the scenario, the device and threads
     (:class:`Runtime`), MLflow, and the method with only its training settings (so decision-time settings never
-    retrain)."""
+    retrain); for a job of the sample-efficiency probe (:func:`probe_jobs`, given its ``dataset`` and ``seed``)
+    also ``snapshots``: {"fractions": ``figures.sample_efficiency.fractions``}."""
     m = settings.methods[method]
     cls = m.controller_class
     entry = dataclasses.replace(m, options=cls.training_settings(m.options))
-    return {"profile": settings.profile, "scenario": to_plain(settings.scenario), "runtime": runtime(settings),
-            "mlflow": to_plain(settings.mlflow), "method": to_plain(entry)}
+    job = {"profile": settings.profile, "scenario": to_plain(settings.scenario), "runtime": runtime(settings),
+           "mlflow": to_plain(settings.mlflow), "method": to_plain(entry)}
+    if dataset is not None and seed is not None and (dataset, method, int(seed)) in probe_jobs(settings):
+        job["snapshots"] = {"fractions": list(settings.figures.sample_efficiency.fractions)}
+    return job
 
 
 def evaluate_slice(settings: Settings, method: str) -> dict:
@@ -661,3 +665,158 @@ def select_slice(settings: Settings) -> dict:
     return {"profile": settings.profile, "selection": to_plain(settings.selection),
             "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
             "method": to_plain(settings.methods[name])}
+
+
+# ---- the extra runs behind the figures (workflow/rules/extra.smk): scenario and planner variants ----------
+VARIANT_KINDS = ("do", "K", "u")
+"""``do``: the planner's imagined demand times s (``planner.imagine_scale``, paper Fig. 8 (b)); ``K``: the fleet
+size; ``u``: the demand intensity times a factor, applied after calibration (paper Fig. 10)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One extra run's one change to the main evaluation, named ``<kind><value>`` (``do0.5``, ``K8``, ``u2``)."""
+
+    kind: str
+    """One of :data:`VARIANT_KINDS`."""
+    value: float
+    """s (``do``), K (``K``, an integer) or the factor of u (``u``)."""
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind}{self.value:g}"
+
+
+def parse_variant(name: str) -> Variant:
+    """The :class:`Variant` named ``name`` (its :attr:`Variant.name`).
+
+    Raises:
+        ValueError: ``name`` is not ``do<s>``, ``K<integer>`` or ``u<factor>`` with a positive number.
+    """
+    import re
+
+    match = re.fullmatch(r"(do|K|u)(\d+(?:\.\d+)?)", name)
+    if not match or float(match[2]) <= 0 or (match[1] == "K" and not match[2].isdigit()):
+        raise ValueError(f"extra-run variant {name!r}: expected do<s>, K<integer> or u<factor> with a positive "
+                         f"number, e.g. do0.5, K8, u2")
+    return Variant(match[1], int(match[2]) if match[1] == "K" else float(match[2]))
+
+
+def extra_variants(settings: Settings) -> list[Variant]:
+    """Every variant the extra runs of ``figures`` need, in order do, K, u. The reference points (s = 1, the
+    scenario's own K, u x 1) are the main evaluations and need no run."""
+    fig = settings.figures
+    out = [Variant("do", float(s)) for s in fig.do_probe.scales if s != 1.0]
+    out += [Variant("K", int(k)) for k in fig.scaling.fleet_sizes if k != settings.scenario.n_uavs]
+    out += [Variant("u", float(f)) for f in fig.scaling.intensity_scales if f != 1.0]
+    return out
+
+
+def variant_methods(settings: Settings, variant: Variant) -> list[str]:
+    """The methods run under ``variant``: those of ``figures.do_probe.methods`` (do) or ``figures.scaling.methods``
+    (K, u) that ``methods.run`` evaluates on ``figures.dataset``."""
+    fig = settings.figures
+    names = fig.do_probe.methods if variant.kind == "do" else fig.scaling.methods
+    return fig.present(names, settings)
+
+
+def extra_jobs(settings: Settings) -> list[tuple[str, str, int]]:
+    """Every (variant name, method, seed) extra evaluation on ``figures.dataset``."""
+    return [(v.name, m, s) for v in extra_variants(settings) for m in variant_methods(settings, v)
+            for s in settings.figures.seeds]
+
+
+def variant_settings(settings: Settings, variant: Variant, method: str) -> Settings:
+    """``settings`` with ``variant``'s change: ``method``'s ``planner.imagine_scale`` = s (do) or the scenario's
+    ``n_uavs`` = K (K); the u factor is not a setting of config.yaml (see :func:`variant_train_slice`).
+
+    Raises:
+        ConfigError: a do variant of a method whose settings have no ``planner.imagine_scale``.
+    """
+    if variant.kind == "K":
+        return dataclasses.replace(settings, scenario=dataclasses.replace(settings.scenario, n_uavs=int(variant.value)))
+    if variant.kind != "do":
+        return settings
+    m = settings.methods[method]
+    planner = getattr(m.options, "planner", None)
+    if planner is None or not hasattr(planner, "imagine_scale"):
+        raise ConfigError(f"config.yaml: key 'figures.do_probe.methods' names {method!r}, whose settings have no "
+                          f"planner.imagine_scale (expected a method of the 'dswm' section, e.g. dswm or dswm_wo_dec)")
+    options = dataclasses.replace(m.options, planner=dataclasses.replace(planner, imagine_scale=float(variant.value)))
+    return dataclasses.replace(settings, methods={**settings.methods, method: dataclasses.replace(m, options=options)})
+
+
+def _with_intensity_scale(job: dict, variant: Variant) -> dict:
+    """``job`` with ``intensity_scale``, the factor of u applied after calibration, for a u variant."""
+    return {**job, "intensity_scale": float(variant.value)} if variant.kind == "u" else job
+
+
+def variant_train_slice(settings: Settings, method: str, variant: Variant) -> dict:
+    """What an ``extra_train`` job of ``method`` under ``variant`` reads: :func:`train_slice` of the variant's
+    settings, with ``intensity_scale`` for a u variant. A do variant changes a decision-time setting only, so its
+    slice is the main train job's (no training of its own)."""
+    return _with_intensity_scale(train_slice(variant_settings(settings, variant, method), method), variant)
+
+
+def variant_evaluate_slice(settings: Settings, method: str, variant: Variant) -> dict:
+    """What an ``extra_evaluate`` job reads: :func:`evaluate_slice` of the variant's settings with the day limits
+    of ``figures.eval_days``, and ``intensity_scale`` for a u variant."""
+    job = evaluate_slice(variant_settings(settings, variant, method), method)
+    job["eval_days"] = to_plain(settings.figures.eval_days)
+    return _with_intensity_scale(job, variant)
+
+
+def variant_retrains(settings: Settings, method: str, variant: Variant) -> bool:
+    """True when ``method``'s training source trains again under ``variant`` (its train slice differs from the
+    main train job's: K changes the action size, u the reward); False for a method that does not learn."""
+    source = settings.methods[method].training_source
+    if source is None:
+        return False
+    return variant_train_slice(settings, source, variant) != train_slice(settings, source)
+
+
+def scale_intensity(scenario: Scenario, factor: float) -> Scenario:
+    """``scenario`` with u times ``factor`` (a u variant's ``intensity_scale``); u must be a number already
+    (:func:`calibrated_scenario` first).
+
+    Raises:
+        ValueError: u is still ``calibrate``.
+    """
+    if factor == 1.0:
+        return scenario
+    if scenario.calibrates:
+        raise ValueError(f"scenario.demand_intensity is {CALIBRATE!r}: resolve u from the calibrate rule's record "
+                         f"(calibrated_scenario) before multiplying it by {factor}")
+    return dataclasses.replace(scenario, demand_intensity=float(scenario.demand_intensity) * float(factor))
+
+
+# ---- the sample-efficiency probe (workflow/rules/probes.smk) ------------------------------------------------
+def probed_methods(settings: Settings) -> list[str]:
+    """The methods of ``figures.sample_efficiency.methods`` the probe runs: those ``methods.run`` evaluates on
+    ``figures.dataset`` that the ``train`` rule fits (their own training source; a method that evaluates another's
+    model, e.g. ``dswm_wo_unc``, is not probed apart)."""
+    fig = settings.figures
+    if fig is None:
+        return []
+    trained = settings.trained()
+    return [m for m in fig.present(fig.sample_efficiency.methods, settings) if m in trained]
+
+
+def probe_jobs(settings: Settings) -> list[tuple[str, str, int]]:
+    """Every (dataset, method, seed) whose train job snapshots its model and whose snapshots the probe evaluates:
+    ``figures.dataset`` x :func:`probed_methods` x ``figures.seeds``."""
+    if settings.figures is None:
+        return []
+    return [(settings.figures.dataset, m, int(s)) for m in probed_methods(settings) for s in settings.figures.seeds]
+
+
+def probe_slice(settings: Settings, method: str) -> dict:
+    """What a ``probe`` job of ``method`` reads: :func:`evaluate_slice` less the day limits (the probe runs one
+    fixed day, the first ID test day): the method with all its settings, as its evaluation."""
+    return {k: v for k, v in evaluate_slice(settings, method).items() if k != "eval_days"}
+
+
+def figures_slice(settings: Settings) -> dict:
+    """What a figure job of the results reads: the tables' slice (profile, tables, datasets, the methods' rows),
+    MLflow (the runs its figure is attached to) and the ``figures`` section."""
+    return {**tables_slice(settings), "mlflow": to_plain(settings.mlflow), "figures": to_plain(settings.figures)}

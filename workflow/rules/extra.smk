@@ -1,1 +1,154 @@
-# (being written)
+# The extra evaluation runs behind paper Fig. 8 (b) (the do(s) probe) and Fig. 10 (the scaling sweeps), and those
+# two figures. Each run is the main evaluation with one change, its `variant`: do<s> (the planner's imagined demand
+# x s, `planner.imagine_scale`), K<k> (the fleet size) or u<f> (the demand intensity x f, after calibration); on
+# `figures.dataset`, seeds `figures.seeds`, days `figures.eval_days`; sized per profile (config.yaml `figures`).
+# A learning method evaluates the main train rule's model when the variant's train slice is the main one's (a do
+# variant), else the model `extra_train` fits under the variant. Outputs under results/extra/: never a table's
+# source. The reference points (s = 1, the scenario's own K, u x 1) are the main evaluations on the same days.
+from dswm.figures.ablation import ABLATION_METHODS
+
+EXTRA_VARIANTS = {v.name: v for v in S.extra_variants(SETTINGS)}
+"""{name: dswm.settings.Variant} of every extra run the figures need."""
+EXTRA_DIR = "results/extra/{dataset}/{variant}/{method}/seed{seed}"
+FIG_DATASET = FIGURES_SETTINGS.dataset
+_missing_seeds = sorted(set(FIGURES_SETTINGS.seeds) - set(SETTINGS.seeds(FIG_DATASET)))
+if _missing_seeds:
+    raise WorkflowError(f"config.yaml: key 'figures.seeds' holds {_missing_seeds}, which profile {PROFILE!r} does not "
+                        f"run on {FIG_DATASET} (profiles.{PROFILE}.seeds.{FIG_DATASET}: "
+                        f"{SETTINGS.seeds(FIG_DATASET)}); the extra runs are compared with those main evaluations")
+
+for _v, _m, _s in S.extra_jobs(SETTINGS):  # a do variant of a method without an imagined demand stops here
+    try:
+        S.variant_evaluate_slice(SETTINGS, _m, EXTRA_VARIANTS[_v])
+    except ConfigError as err:
+        raise WorkflowError(str(err)) from None
+
+
+def _pattern(names):
+    """A wildcard constraint matching exactly ``names`` (none: nothing)."""
+    import re
+
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+def extra_model(wildcards):
+    """The model an extra evaluation loads: its training source's, from the main `train` rule when the variant
+    does not change the source's train slice, else from `extra_train` (none for a method that does not learn)."""
+    if not learns(wildcards.method):
+        return {}
+    variant = EXTRA_VARIANTS[wildcards.variant]
+    source = {**dict(wildcards.items()), "method": SETTINGS.methods[wildcards.method].training_source}
+    producer = rules.extra_train if S.variant_retrains(SETTINGS, wildcards.method, variant) else rules.train
+    return {"model": producer.output.model.format(**source), "manifest": producer.output.manifest.format(**source)}
+
+
+def extra_days(kinds):
+    """The days.parquet of every extra run of the variant kinds ``kinds`` ("do", "K", "u")."""
+    return [rules.extra_evaluate.output.days.format(dataset=FIG_DATASET, variant=v, method=m, seed=s)
+            for v, m, s in S.extra_jobs(SETTINGS) if EXTRA_VARIANTS[v].kind in kinds]
+
+
+def main_days(methods, seeds):
+    """The main evaluations' days.parquet of ``methods`` and ``seeds`` on `figures.dataset`."""
+    return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
+
+
+rule extra_train:
+    input:
+        tensor=rules.prepare.output.tensor,
+        meta=rules.prepare.output.meta,
+        mlflow=rules.mlflow_init.output.marker,
+        **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
+    output:
+        model=EXTRA_DIR + "/model.pt",
+        manifest=EXTRA_DIR + "/train_manifest.json",
+    params:
+        settings=lambda wc: S.param(S.variant_train_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        run_dir=lambda wc: EXTRA_DIR.format(**dict(wc.items())) + "/train",
+    log:
+        "logs/extra_train/{dataset}/{variant}/{method}/seed{seed}.log",
+    benchmark:
+        "results/benchmarks/extra_train/{dataset}/{variant}/{method}/seed{seed}.tsv"
+    wildcard_constraints:
+        variant=_pattern(EXTRA_VARIANTS),
+        method=TRAINED_PATTERN,
+    threads: 1
+    script:
+        "../scripts/extra_train.py"
+
+
+rule extra_evaluate:
+    input:
+        unpack(extra_model),
+        tensor=rules.prepare.output.tensor,
+        meta=rules.prepare.output.meta,
+        mlflow=rules.mlflow_init.output.marker,
+        **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
+    output:
+        days=EXTRA_DIR + "/days.parquet",
+        trajectory=EXTRA_DIR + "/trajectory.npz",
+        record=EXTRA_DIR + "/eval_manifest.json",  # SHA-256 and size of the two files above, written last
+    params:
+        settings=lambda wc: S.param(S.variant_evaluate_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        display=S.Untracked(DISPLAY),
+    log:
+        "logs/extra_evaluate/{dataset}/{variant}/{method}/seed{seed}.log",
+    benchmark:
+        "results/benchmarks/extra_evaluate/{dataset}/{variant}/{method}/seed{seed}.tsv"
+    wildcard_constraints:
+        variant=_pattern(EXTRA_VARIANTS),
+    threads: 1
+    script:
+        "../scripts/extra_evaluate.py"
+
+
+_PROBED = FIGURES_SETTINGS.present(FIGURES_SETTINGS.do_probe.methods, SETTINGS)
+_ABLATED = FIGURES_SETTINGS.present(ABLATION_METHODS, SETTINGS)
+_SCALED = FIGURES_SETTINGS.present(FIGURES_SETTINGS.scaling.methods, SETTINGS)
+_FIG_PARAMS = {
+    "profile": PROFILE,
+    "seeds": list(FIGURES_SETTINGS.seeds),
+    "eval_days": {"id": FIGURES_SETTINGS.eval_days.id, "ood": FIGURES_SETTINGS.eval_days.ood},
+    "split_labels": {"id": SETTINGS.tables.split_labels.id, "ood": SETTINGS.tables.split_labels.ood},
+}
+
+
+rule figure_ablation:
+    input:
+        ablation=main_days(_ABLATED, SETTINGS.seeds(FIG_DATASET)),  # panel (a): every seed of the profile
+        reference=main_days(_PROBED, FIGURES_SETTINGS.seeds),  # panel (b), s = 1
+        probe=extra_days({"do"}),
+    output:
+        **figure_outputs("ablation", "Ablation and counterfactual"),
+    params:
+        **_FIG_PARAMS,
+        order=_ABLATED,
+        probe_methods=_PROBED,
+        labels={m: SETTINGS.methods[m].label for m in dict.fromkeys(_ABLATED + _PROBED)},
+    log:
+        "logs/figures/ablation.log",
+    benchmark:
+        "results/benchmarks/figures/ablation.tsv"
+    script:
+        "../scripts/figure_ablation.py"
+
+
+rule figure_scaling:
+    input:
+        reference=main_days(_SCALED, FIGURES_SETTINGS.seeds),  # the scenario's own K and u x 1
+        runs=extra_days({"K", "u"}),
+    output:
+        **figure_outputs("scaling", "Scaling"),
+    params:
+        **_FIG_PARAMS,
+        methods=_SCALED,
+        labels={m: SETTINGS.methods[m].label for m in _SCALED},
+        n_uavs=SETTINGS.scenario.n_uavs,
+        fleet_sizes=list(FIGURES_SETTINGS.scaling.fleet_sizes),
+        intensity_scales=list(FIGURES_SETTINGS.scaling.intensity_scales),
+    log:
+        "logs/figures/scaling.log",
+    benchmark:
+        "results/benchmarks/figures/scaling.tsv"
+    script:
+        "../scripts/figure_scaling.py"

@@ -8,10 +8,11 @@ rule figure_main:
         results=result_files(),
         **meta_files(),
         tables=rules.build_tables.output.main_csv,  # drawn once the audit let the tables be built
+        mlflow=rules.mlflow_init.output.marker,  # the figure is logged as an artifact of the runs it shows
     output:
         **figure_outputs("main", "Main results"),
     params:
-        settings=S.param(S.tables_slice(SETTINGS)),
+        settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/main.log",
     script:
@@ -23,10 +24,11 @@ rule figure_ood:
         results=result_files(),
         **meta_files(),
         tables=rules.build_tables.output.main_csv,
+        mlflow=rules.mlflow_init.output.marker,
     output:
         **figure_outputs("ood", "Main results"),
     params:
-        settings=S.param(S.tables_slice(SETTINGS)),
+        settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/ood.log",
     script:
@@ -38,10 +40,11 @@ rule figure_cross_dataset:
         results=result_files(),
         **meta_files(),
         tables=rules.build_tables.output.cross_csv,
+        mlflow=rules.mlflow_init.output.marker,
     output:
         **figure_outputs("cross_dataset", "Main results"),
     params:
-        settings=S.param(S.tables_slice(SETTINGS)),
+        settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/cross_dataset.log",
     script:
@@ -54,7 +57,7 @@ rule figure_eda:
     output:
         **figure_outputs("eda", "Data"),
     params:
-        settings=S.param(S.tables_slice(SETTINGS)),
+        settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/eda.log",
     script:

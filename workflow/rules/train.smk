@@ -11,8 +11,13 @@ rule train:
     output:
         model="results/{dataset}/{method}/seed{seed}/model.pt",
         manifest="results/{dataset}/{method}/seed{seed}/train_manifest.json",
+        # The loss history (what MLflow also receives), the source of the training-diagnostics figure.
+        history="results/{dataset}/{method}/seed{seed}/train_history.parquet",
+        # Model snapshots at figures.sample_efficiency.fractions of the budget with their index.json, for the jobs
+        # of the sample-efficiency probe (dswm.settings.probe_jobs); empty for every other job.
+        snapshots=directory("results/{dataset}/{method}/seed{seed}/snapshots"),
     params:
-        settings=lambda wc: S.param(S.train_slice(SETTINGS, wc.method)),
+        settings=lambda wc: S.param(S.train_slice(SETTINGS, wc.method, wc.dataset, int(wc.seed))),
         evaluated_as=lambda wc: S.Untracked(S.evaluated_as(SETTINGS, wc.method)),
         run_dir=lambda wc: f"results/{wc.dataset}/{wc.method}/seed{wc.seed}/train",
     log:

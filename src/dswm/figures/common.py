@@ -57,8 +57,9 @@ def save_figure(fig, data: pl.DataFrame, *, png: str | Path, pdf: str | Path, cs
     """
     corner_note(fig, profile=profile, source=source)
     fig.text(0.005, 0.005, caption, ha="left", va="bottom", fontsize=7, wrap=True)
-    _atomic(Path(png), lambda p: fig.savefig(p, dpi=DPI, format="png"))
-    _atomic(Path(pdf), lambda p: fig.savefig(p, format="pdf"))
+    # bbox_inches="tight": the saved image grows to hold legends placed outside the axes
+    _atomic(Path(png), lambda p: fig.savefig(p, dpi=DPI, format="png", bbox_inches="tight"))
+    _atomic(Path(pdf), lambda p: fig.savefig(p, format="pdf", bbox_inches="tight"))
     plt.close(fig)
 
     def write_csv(p):

@@ -113,7 +113,7 @@ def draw_ood(days: pl.DataFrame, *, dataset: str, labels: Mapping[str, str], cla
                .agg(pl.col("sr_mean").mean(), pl.col("sr_mean").std(ddof=1).fill_null(0.0).alias("sr_std"),
                     pl.col("seed").n_unique().alias("seeds"))
                .sort("day"))
-    fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(15, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
+    fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(12, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
     y = np.arange(len(order))
     vals = [deg_of[m]["degradation"] for m in order]
     ax_a.barh(y, vals, xerr=[deg_of[m]["degradation_std"] for m in order], capsize=2,
@@ -139,7 +139,7 @@ def draw_ood(days: pl.DataFrame, *, dataset: str, labels: Mapping[str, str], cla
     ax_b.set_ylabel("(b) served ratio per evaluated day")
     ax_b.grid(alpha=0.3)
     ax_b.legend(fontsize=6, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout(rect=(0, 0.03, 0.8, 1))  # the legend of (b) in the right fifth
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
     data = per_day.join(deg, on="method", how="left").with_columns(
         pl.col("method").replace_strict(labels, default=None).alias("label_method"))
     data = data.sort(pl.col("method").replace_strict({m: i for i, m in enumerate(order)}), "day")
@@ -188,20 +188,35 @@ def draw_cross(days: pl.DataFrame, *, labels: Mapping[str, str], classes: Mappin
 
 
 def figure_job(name: str, *, job: Mapping, inputs, out: Mapping[str, str | Path]) -> pl.DataFrame:
-    """Draw figure ``name`` (main, ood, cross_dataset or eda) for its rule.
+    """Draw figure ``name`` (main, ood, cross_dataset or eda) for its rule and log it (PNG and PDF) as an artifact
+    of every evaluation run it shows.
 
     Args:
-        job: the plain form of ``dswm.settings.tables_slice`` (profile, tables, datasets, methods in run order).
+        job: the plain form of ``dswm.settings.figures_slice`` (profile, tables, datasets, methods in run order,
+            mlflow).
         inputs: the rule's input: ``results`` (every days.parquet of the profile) and, per dataset, its meta.json
             (``<dataset>``) or, for eda, its EDA statistics (``eda_<dataset>``).
     """
-    from dswm.figures.common import read_days
     from dswm.figures.eda import draw_eda, read_stats
-    from prep.tensor import read_meta
 
     profile = job["profile"]
     if name == "eda":
         return draw_eda(read_stats({d: inputs[f"eda_{d}"] for d in job["datasets"]}), profile=profile, out=out)
+    data = _draw(name, job=job, inputs=inputs, out=out)
+    # The figure is logged beside the evaluation runs it shows (every dataset's for cross_dataset).
+    from dswm.pipeline.tracking import attach_figures
+
+    attach_figures(mlflow_cfg=job["mlflow"], paths=[out["png"], out["pdf"]], stage="evaluate", profile=profile,
+                   datasets=None if name == "cross_dataset" else [job["tables"]["main_dataset"]])
+    return data
+
+
+def _draw(name: str, *, job: Mapping, inputs, out: Mapping[str, str | Path]) -> pl.DataFrame:
+    """The drawing part of :func:`figure_job` for main, ood and cross_dataset."""
+    from dswm.figures.common import read_days
+    from prep.tensor import read_meta
+
+    profile = job["profile"]
     tables = job["tables"]
     methods = job["methods"]
     kw = dict(labels={m["name"]: m["label"] for m in methods}, classes={m["name"]: m["table_class"] for m in methods},

@@ -134,11 +134,13 @@ class Controller:
         file records this value and the audit compares it across methods (docs/AUDIT.md)."""
         return None
 
-    def fit(self, train_core, *, run_dir) -> dict:
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
         """Train on a core over the TRAINING days only; return the training manifest (docs/ARCHITECTURE.md).
 
         A manifest may carry ``history``: {metric name: list of values per step}; the train rule logs it to
-        MLflow in batches and keeps it out of train_manifest.json.
+        MLflow in batches and keeps it out of train_manifest.json. ``snapshots`` (a
+        ``dswm.methods.snapshots.Snapshots``, or None) asks for model snapshots at fractions of the budget: the fit
+        loop claims its checkpoint with it first, then calls its ``step`` after every unit of the budget.
         """
         raise NotImplementedError(f"method {self.name!r} does not learn")
 

@@ -132,13 +132,21 @@ class TrainedController(Controller):
         self.learner, self.grid, self.scenario = learner, grid, scenario
 
     # ---- training ----------------------------------------------------------------------------------------
-    def fit(self, train_core, *, run_dir) -> dict:
-        """Train on the TRAINING-days core, continuing a checkpoint of the same run; return the manifest."""
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
+        """Train on the TRAINING-days core, continuing a checkpoint of the same run; return the manifest.
+        ``snapshots``: see ``Controller.fit`` (one is taken after the unit that reaches each fraction)."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         trainer = self.make_trainer(train_core)
         ckpt = run_dir / "checkpoint.pt"
         key = checkpoint_key(method=self.name, seed=self.seed, settings=self.settings, core=train_core)
+
+        def write_snapshot(path: Path) -> None:
+            self.use(trainer.learner, train_core.grid, train_core.scenario)
+            self.save(path)
+
+        if snapshots is not None:
+            snapshots.claim(ckpt)
         if ckpt.exists():
             blob = torch.load(ckpt, map_location="cpu", weights_only=False)  # RNG states live on the CPU
             if blob.get("extra") == key:  # the same run, interrupted (or done): continue it
@@ -149,6 +157,9 @@ class TrainedController(Controller):
         while done < total:
             trainer.advance()
             done, total = trainer.progress
+            if snapshots is not None:
+                snapshots.step(done=done, total=total, n_transitions=trainer.per_day * len(trainer.days_used),
+                               write=write_snapshot)
             if done % every == 0 or done == total:
                 trainer.save(ckpt, key)
         self.use(trainer.learner, train_core.grid, train_core.scenario)

@@ -24,7 +24,7 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from dswm.config import build, stable_hash, to_plain
-from dswm.methods import registry
+from dswm.methods import registry, snapshots
 from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
@@ -69,6 +69,17 @@ def prepared_files_read(tensor_dir: str | Path) -> list[dict]:
             for name in (TENSOR_FILE, META_FILE)]
 
 
+def log_demand_input(run: tracking.JobRun, tensor_dir: str | Path, dataset: str, context: str) -> str:
+    """Record the prepared demand tensor (``tensor_dir``/demand.parquet) as the run's MLflow dataset input, named
+    ``dataset`` with the first 16 hex digits of its SHA-256 as digest; returns the full SHA-256."""
+    from prep.tensor import TENSOR_FILE
+
+    path = Path(tensor_dir) / TENSOR_FILE
+    digest = sha256_file(path)
+    run.log_dataset(path, name=dataset, digest=digest[:16], context=context)
+    return digest
+
+
 def _setup(runtime: Runtime | EvaluationSettings) -> None:
     torch.set_num_threads(runtime.torch_threads)
     keep_freed_memory()
@@ -96,13 +107,19 @@ def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
 
 def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: str | Path, dataset: str, method: str,
               seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
-              repo: str | Path, intensity: str | Path | None = None) -> dict:
+              repo: str | Path, intensity: str | Path | None = None,
+              history_out: str | Path | None = None, snapshots_out: str | Path | None = None) -> dict:
     """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
 
     Args:
         job: the plain form of ``dswm.settings.train_slice`` (the method carries its training settings only).
         evaluated_as: the methods whose evaluations load this model (an MLflow tag).
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
+        history_out: where the loss history is written as well (``dswm.pipeline.history.write_history``: one row
+            per logged step, one column per series), the source of the training-diagnostics figure.
+        snapshots_out: the train rule's ``snapshots`` directory: the model snapshots at the fractions of the
+            budget that ``job["snapshots"]`` asks for, with their index (``dswm.methods.snapshots.export``); left
+            empty when the slice asks for none.
 
     The manifest is what ``fit`` returns plus ``checkpoint_sha256`` (the checkpoint ``fit`` recorded, hashed when
     it returned), ``model``, ``model_sha256`` (``model_out`` once saved) and ``data_files_read``
@@ -118,14 +135,20 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="train", dataset=dataset,
                           method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
         run.set_tags({"evaluated_as": ",".join(evaluated_as)})  # methods whose evaluations load this model
+        log_demand_input(run, tensor_dir, dataset, "training")
         torch.manual_seed(seed)
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
         core = training_core(tensor, scenario, device=ev.device)
-        manifest = dict(ctrl.fit(core, run_dir=run_dir))
+        snaps = snapshots.for_train_job(job=job, method=method, seed=seed, run_dir=run_dir, data_files=data_files)
+        manifest = dict(ctrl.fit(core, run_dir=run_dir, **({"snapshots": snaps} if snaps is not None else {})))
         history = manifest.pop("history", None) or {}
         steps = history.pop("step", None)
         for name, values in history.items():
             run.log_series(name, values, steps)
+        if history_out is not None:
+            from dswm.pipeline.history import write_history
+
+            write_history(history_out, history, steps, dataset=dataset, method=method, seed=seed)
         ckpt = manifest.get("checkpoint")
         if ckpt:
             if not Path(ckpt).is_file():
@@ -133,6 +156,8 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
                                         f"not exist; expected the file training ended with")
             manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
         ctrl.save(model_out)
+        if snapshots_out is not None and snapshots.export(snaps, snapshots_out, method=method, seed=seed):
+            run.log_artifact(Path(snapshots_out) / snapshots.INDEX_FILE, "snapshots")
         manifest.setdefault("model", str(model_out))
         manifest.update(model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
         write_json(manifest_out, manifest)
@@ -192,6 +217,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
     tensor = _load_tensor(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="evaluate", dataset=dataset,
                           method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+        log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
         record = model_record(method=method)
         if ctrl.learns:
@@ -299,3 +325,113 @@ def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Pa
               "validation_days": [tensor.labels[d] for d in val_days], "search": search, "planner": planner}
     write_json(out, report)
     return report
+
+
+# ---- the extra runs behind the figures (workflow/rules/extra.smk) ---------------------------------------------
+import polars as pl  # noqa: E402
+
+from dswm.settings import scale_intensity  # noqa: E402
+
+
+def _variant_run(*, job: Mapping[str, Any], part: str, variant: str, dataset: str, method: str, seed: int,
+                 repo: str | Path):
+    """The MLflow run of one extra job: tagged ``stage`` "extra", ``variant`` and ``extra_job`` (``part``: train or
+    evaluate); its job key (``extra/<variant>/<part>/<dataset>/<method>/seed<seed>``) is its own, so a rerun
+    replaces only its own earlier run."""
+    return tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=f"extra/{variant}/{part}",
+                            dataset=dataset, method=method, seed=seed, config_hash=stable_hash(job, length=12),
+                            repo=repo)
+
+
+def _variant_common(job: Mapping[str, Any], key: str, cls: type,
+                    intensity: str | Path | None) -> tuple[Any, Scenario, MethodSettings]:
+    """:func:`_common` with a u variant's factor applied to the calibrated u (``job["intensity_scale"]``)."""
+    run, scenario, m = _common(job, key, cls, intensity)
+    return run, scale_intensity(scenario, float(job.get("intensity_scale", 1.0))), m
+
+
+def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | Path, dataset: str, method: str,
+                    seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
+                    repo: str | Path, intensity: str | Path | None = None) -> dict:
+    """Fit ``method`` on the training days of ``dataset`` under an extra run's variant (its fleet size or demand
+    intensity); write the model file and the training manifest as :func:`train_job` does.
+
+    Args:
+        job: the plain form of ``dswm.settings.variant_train_slice``.
+        variant: the variant's name (``K8``, ``u2``; an MLflow tag).
+        intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
+
+    Returns:
+        The manifest written (without the loss history, which goes to MLflow).
+    """
+    ev, scenario, m = _variant_common(job, "runtime", Runtime, intensity)
+    job = _as_used(job, scenario)
+    data_files = prepared_files_read(tensor_dir)
+    tensor = _load_tensor(tensor_dir)
+    with _variant_run(job=job, part="train", variant=variant, dataset=dataset, method=method, seed=seed,
+                      repo=repo) as run:
+        run.set_tags({"stage": "extra", "variant": variant, "extra_job": "train"})
+        torch.manual_seed(seed)
+        ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
+        manifest = dict(ctrl.fit(training_core(tensor, scenario, device=ev.device), run_dir=run_dir))
+        history = manifest.pop("history", None) or {}
+        steps = history.pop("step", None)
+        for name, values in history.items():
+            run.log_series(name, values, steps)
+        ckpt = manifest.get("checkpoint")
+        if ckpt:
+            manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
+        ctrl.save(model_out)
+        manifest.setdefault("model", str(model_out))
+        manifest.update(variant=variant, model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
+        write_json(manifest_out, manifest)
+        run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
+                         "train/steps": float(manifest.get("steps", 0))})
+        run.log_artifact(manifest_out)
+    return manifest
+
+
+def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display, tensor_dir: str | Path,
+                       dataset: str, method: str, seed: int, days_out: str | Path, trajectory_out: str | Path,
+                       record_out: str | Path, repo: str | Path, model: str | Path | None = None,
+                       manifest: str | Path | None = None,
+                       intensity: str | Path | None = None) -> evaluation.EvalResult:
+    """Evaluate one (dataset, method, seed) under an extra run's variant on the days of ``figures.eval_days``;
+    write days.parquet, trajectory.npz and their content record as :func:`evaluate_job` does.
+
+    Args:
+        job: the plain form of ``dswm.settings.variant_evaluate_slice``.
+        variant: the variant's name (``do0.5``, ``K8``, ``u2``; an MLflow tag and a column of days.parquet).
+        model, manifest: the model of the method's training source, trained by the main ``train`` rule when the
+            variant's train slice is the main one's (a do variant), else by ``extra_train``.
+        intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
+    """
+    ev, scenario, m = _variant_common(job, "evaluation", EvaluationSettings, intensity)
+    job = _as_used(job, scenario)
+    limits = build(EvalDayLimits, job["eval_days"], "eval_days")
+    tensor = _load_tensor(tensor_dir)
+    with _variant_run(job=job, part="evaluate", variant=variant, dataset=dataset, method=method, seed=seed,
+                      repo=repo) as run:
+        run.set_tags({"stage": "extra", "variant": variant, "extra_job": "evaluate"})
+        ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
+        record = model_record(method=method)
+        if ctrl.learns:
+            if model is None or manifest is None:
+                raise ValueError(f"{method} ({variant}): a learning method needs its training source's model file "
+                                 f"and train_manifest.json (found model={model!r}, manifest={manifest!r})")
+            record = model_record(method=method, source=m.training_source or method, model=model, manifest=manifest)
+            run.set_tags({"train_source": record["train_source"], "model_path": record["model"],
+                          "model_sha256": record["model_sha256"]})
+            ctrl.load(model)
+        result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
+                                     limits={"id": limits.id, "ood": limits.ood}, profile=job["profile"],
+                                     device=ev.device, batch_days=ev.batch_days,
+                                     progress_interval_s=display.progress_mininterval_s)
+        days = result.days.with_columns(pl.lit(variant).alias("variant"))
+        evaluation.write_days(days, days_out, record, method_record(m, ctrl))
+        save_npz(trajectory_out, **result.trajectories)
+        run.log_metrics(evaluation.split_summary(days))
+        run.set_tags({"data_source": tensor.meta["source"], "eval_days_hash": days["eval_days_hash"][0]})
+        run.log_artifact(days_out)
+    evaluation.write_eval_record(record_out, {"days.parquet": days_out, "trajectory.npz": trajectory_out})
+    return result

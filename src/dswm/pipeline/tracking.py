@@ -16,6 +16,7 @@ import signal
 import threading
 import subprocess
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -45,8 +46,13 @@ def _retry(fn, *args, attempts: int = 8, **kwargs):
     raise AssertionError("unreachable")
 
 
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+"""The experiment tag that makes the MLflow UI open on the training-runs view (without it, MLflow 3 opens on
+the GenAI overview, whose traces page this project never fills)."""
+
+
 def init_store(*, store: str | Path, artifacts: str | Path, experiment: str) -> dict:
-    """Create the SQLite store and the experiment (idempotent) and describe them.
+    """Create the SQLite store and the experiment (idempotent), tag it :data:`EXPERIMENT_KIND`, and describe them.
 
     Args:
         store: path of the SQLite file, e.g. results/mlflow.db.
@@ -68,6 +74,7 @@ def init_store(*, store: str | Path, artifacts: str | Path, experiment: str) -> 
         exp_id = found.experiment_id
     else:
         exp_id = found.experiment_id
+    client.set_experiment_tag(exp_id, *EXPERIMENT_KIND)
     exp = client.get_experiment(exp_id)
     return {"tracking_uri": tracking_uri(store), "experiment": experiment, "experiment_id": exp.experiment_id,
             "artifact_location": exp.artifact_location}
@@ -130,6 +137,25 @@ class JobRun:
     def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
         """Copy a file into the run's artifact directory."""
         _retry(self.client.log_artifact, self.run_id, str(path), artifact_path)
+
+    def log_dataset(self, path: str | Path, *, name: str, digest: str, context: str) -> None:
+        """Record the file ``path`` as a dataset input of the run (the Dataset column and lineage of the UI).
+
+        Args:
+            name: the dataset's name (e.g. "milan").
+            digest: its content hash (shown beside the name; a new file gives a new dataset entry).
+            context: what the run did with it ("evaluation", "training", ...).
+        """
+        from mlflow.data.dataset_source_registry import resolve_dataset_source
+        from mlflow.data.meta_dataset import MetaDataset
+        from mlflow.entities import DatasetInput, InputTag
+
+        with warnings.catch_warnings():  # two registered local-file source types match a file URI; either will do
+            warnings.simplefilter("ignore", UserWarning)
+            source = resolve_dataset_source(Path(path).resolve().as_uri())
+        dataset = MetaDataset(source, name=name, digest=digest)
+        entry = DatasetInput(dataset=dataset._to_mlflow_entity(), tags=[InputTag("mlflow.data.context", context)])
+        _retry(self.client.log_inputs, self.run_id, datasets=[entry])
 
     def set_tags(self, tags: Mapping[str, Any]) -> None:
         """Add tags to the run."""
@@ -242,3 +268,31 @@ def close_orphans(*, store: str | Path, experiment: str) -> int:
     for run in runs:
         _retry(client.set_terminated, run.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     return len(runs)
+
+
+def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path], stage: str | Sequence[str],
+                   datasets: Sequence[str] | None = None, methods: Sequence[str] | None = None,
+                   profile: str | None = None, artifact_path: str = "figures") -> int:
+    """Log the figure files ``paths`` as artifacts (under ``artifact_path``) of every FINISHED run they concern:
+    the runs of ``stage`` (one or several), restricted to ``datasets``, ``methods`` and ``profile`` where given.
+
+    A figure is drawn after the runs it shows have ended; MLflow keeps a run's artifact store open after that, so
+    the figure lands beside the run's result files. Returns how many runs received the files.
+    """
+    store = mlflow_cfg["store"]
+    client = MlflowClient(tracking_uri=tracking_uri(store))
+    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
+    if exp is None:
+        raise LookupError(f"{store}: experiment {mlflow_cfg['experiment']!r} missing; the mlflow_init rule creates it")
+    stages = [stage] if isinstance(stage, str) else list(stage)
+    query = "attributes.status = 'FINISHED'"  # tags allow no IN; the stages are chosen below
+    if profile is not None:
+        query += f" and tags.profile = '{profile}'"
+    runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=50000)
+    chosen = [r for r in runs if r.data.tags.get("stage") in stages
+              and (datasets is None or r.data.tags.get("dataset") in datasets)
+              and (methods is None or r.data.tags.get("method") in methods)]
+    for r in chosen:
+        for p in paths:
+            _retry(client.log_artifact, r.info.run_id, str(p), artifact_path)
+    return len(chosen)

@@ -129,6 +129,8 @@ class PlanningController(Controller):
             fleet = fleet_state_from_obs(obs["fleet"], self.grid, self.scenario)
             fleet = type(fleet)(*(t.to(self.device) for t in fleet))
             scorer, first_map = self._scorer(obs, demand, fleet)
+            if first_map is not None and self.settings.planner.imagine_scale != 1.0:
+                first_map = self.settings.planner.imagine_scale * first_map   # the do(s) probe: s x imagined map
             action, _ = self.planner.plan(scorer, self._proposals(obs, first_map))
         self._acted(action)
         self.plan_ms.append(1000.0 * (time.perf_counter() - t0))
@@ -145,7 +147,8 @@ class PlanningController(Controller):
         return ImaginationScorer(model=model, latent=latent, fleet=fleet, x_now=demand[-1].reshape(-1),
                                  geom=self.geom, scenario=self.scenario, params=self.params, cells=self.cells,
                                  gamma=cfg.gamma, rho=cfg.rho, lambda_u=cfg.lambda_u,
-                                 continuation=cfg.continuation, compile=cfg.compile, demand_override=maps)
+                                 continuation=cfg.continuation, compile=cfg.compile, demand_override=maps,
+                                 imagine_scale=cfg.imagine_scale)
 
 
 class PersistenceController(PlanningController):
@@ -218,8 +221,10 @@ class DSWMController(PlanningController):
                            cells=grid.cells(), params=self.params)
         return model.to(self.device)
 
-    def fit(self, train_core, *, run_dir) -> dict:
-        """Pre-collect on the TRAINING-days core, train the world model, checkpoint; return the manifest."""
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
+        """Pre-collect on the TRAINING-days core, train the world model, checkpoint; return the manifest.
+        ``snapshots``: see ``Controller.fit`` (the budget is the gradient steps; every snapshot has consumed the
+        pre-collected transitions, all collected before the first step)."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         day_ids = np.asarray(getattr(train_core, "day_ids", range(train_core.n_days)), dtype=np.int64)
@@ -229,12 +234,19 @@ class DSWMController(PlanningController):
         self.model = self._build_model(train_core.grid, train_core.scenario)
         self.model.set_normalizer(replay.demand)
         ckpt = run_dir / "checkpoint.pt"
+
+        def take_snapshot(done: int) -> None:
+            snapshots.step(done=done, total=self.settings.steps, n_transitions=replay.n_transitions, write=self.save)
+
+        if snapshots is not None:
+            snapshots.claim(ckpt)
         # A checkpoint resumes only the same run: same settings AND the same training data, scenario and days
         # (a rerun after the tensor or the scenario changed trains from scratch).
         history = train(self.model, replay, steps=self.settings.steps, cfg=self.settings.training,
                         seed=self.seed, checkpoint=ckpt, resume=True,
                         extra={"method": self.name, "seed": self.seed, "settings": self.settings_hash(),
-                               "inputs": training_inputs_hash(train_core, day_ids)})
+                               "inputs": training_inputs_hash(train_core, day_ids)},
+                        on_step=take_snapshot if snapshots is not None else None)
         save_training_figure(history, run_dir / "training_diagnostics.png")
         return {"days": replay.episode_days(), "day_labels": [train_core.day_labels[r] for r in replay.rows],
                 "transitions_per_day_episode": train_core.scenario.slots_per_day - 1,

@@ -81,6 +81,9 @@ class PlannerConfig:
     """The project's one BCD search (config.yaml ``search``), run by the "bcd" proposal."""
     compile: bool
     """Run the imagined steps compiled by ``torch.compile`` (``ImaginationScorer``)."""
+    imagine_scale: float = 1.0
+    """s of the do(s) probe: every imagined demand map the planner scores on (and the proposal searches on) is
+    multiplied by s at decision time; 1 in every evaluated method. Never a training setting."""
 
     @property
     def later_std(self) -> float:
@@ -184,7 +187,8 @@ def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: t
 def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torch.Tensor,
                   x_prev: torch.Tensor | None, assoc: torch.Tensor | None, *, x_now: torch.Tensor,
                   x_true: torch.Tensor | None, cells: torch.Tensor, geom: Geometry, scenario: Scenario,
-                  params: ServiceParams, rho: float, lambda_u: float, continuation: str, first: bool):
+                  params: ServiceParams, rho: float, lambda_u: float, continuation: str, first: bool,
+                  scale: float = 1.0):
     """One imagined slot of N candidates (the body of ``ImaginationScorer``; see there).
 
     Args:
@@ -192,7 +196,9 @@ def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torc
         state: RSSM state (N, .) or None with ``x_true``; act: (N, K, 3) sampled action of this step;
         x_prev, assoc: (N, G) demand and association of the previous imagined slot (None when ``first``);
         x_now: (G,) observed map; x_true: (G,) true map of this slot, or None for the model's anchored map;
-        first: the step that executes the first action (no continuation).
+        first: the step that executes the first action (no continuation);
+        scale: s of the do(s) probe, the factor of the imagined demand (the anchored map, or ``x_true``); the
+            uncertainty u, relative to the scored demand, does not change with it.
     Returns:
         (fleet, state, action taken (N, K, 3), demand (N, G), association (N, G), reward SR - lambda_u u (N,)).
     """
@@ -204,6 +210,8 @@ def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torc
     fleet, _ = fleet_step(fleet, act, geom, scenario)
     avail = available(fleet)                                                     # (N, K)
     if x_true is not None:
+        if scale != 1.0:
+            x_true = scale * x_true
         res = service(x_true, fleet.pos, avail, cells, params=params, bw_logit=act[..., 2])
         return fleet, state, act, x_true, res.assoc, res.sr
     # Prior rollout, anchored demand ensemble, service head.
@@ -211,6 +219,8 @@ def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torc
     state = rssm.img_step(state, act.flatten(1), sample=False)
     feat = rssm.feat(state)                                                      # (N, F)
     x_hat, u = anchor(x_now, model.demand_members(feat), rho)
+    if scale != 1.0:
+        x_hat = scale * x_hat
     sr, assoc = model.serve(feat, x_hat, fleet.pos, avail, act[..., 2], need_assoc=continuation == "lloyd")
     return fleet, state, act, x_hat, assoc, sr - lambda_u * u
 
@@ -229,19 +239,21 @@ class ImaginationScorer:
     step to a Lloyd step toward the centroid of each UAV's served demand, so that imagined UAVs keep
     repositioning (e.g. fly back to demand after charging) instead of freezing where the sequence left them.
     With ``compile`` each imagined step runs as code compiled by ``torch.compile``: the same functions, fused
-    into a few loops (the first call in a process compiles, seconds).
+    into a few loops (the first call in a process compiles, seconds). ``imagine_scale`` (s of the do(s) probe)
+    multiplies every imagined demand map before it is scored.
     """
 
     def __init__(self, *, model, latent: LatentState | None, fleet: FleetState, x_now: torch.Tensor,
                  geom: Geometry, scenario: Scenario, params: ServiceParams, cells: torch.Tensor, gamma: float,
                  rho: float, lambda_u: float, continuation: str, compile: bool,
-                 demand_override: torch.Tensor | None = None):
+                 demand_override: torch.Tensor | None = None, imagine_scale: float = 1.0):
         """Args:
             model: a ``WorldModel`` (may be None only with ``demand_override``).
             latent: posterior state at t, fields (1, .); fleet: FleetState at t with fields (K, ...).
             x_now: (G,) observed map x_t; cells: (G, 2); continuation: "hold" or "lloyd";
             demand_override: (H, G) true maps x_{t+1..t+H} (then no anchoring and no uncertainty);
-            compile: run the imagined steps compiled (``planner.compile``).
+            compile: run the imagined steps compiled (``planner.compile``);
+            imagine_scale: factor s > 0 of the imagined demand (``planner.imagine_scale``; 1: as imagined).
         """
         if model is None and demand_override is None:
             raise ValueError("ImaginationScorer: a world model is needed unless demand_override is given")
@@ -250,7 +262,9 @@ class ImaginationScorer:
         self.model, self.latent, self.fleet, self.x_now = model, latent, fleet, x_now
         self.geom, self.scenario, self.params, self.cells = geom, scenario, params, cells
         self.gamma, self.rho, self.lambda_u, self.override = gamma, rho, lambda_u, demand_override
-        self.continuation = continuation
+        if not imagine_scale > 0:
+            raise ValueError(f"ImaginationScorer: imagine_scale must be a positive number, found {imagine_scale!r}")
+        self.continuation, self.imagine_scale = continuation, float(imagine_scale)
         self.step = _compiled_step() if compile else imagined_step
         self.last_actions: torch.Tensor | None = None
 
@@ -268,7 +282,7 @@ class ImaginationScorer:
                 self.model, fleet, state, actions[:, tau], x_prev, assoc, x_now=self.x_now,
                 x_true=None if self.override is None else self.override[tau], cells=self.cells, geom=self.geom,
                 scenario=self.scenario, params=self.params, rho=self.rho, lambda_u=self.lambda_u,
-                continuation=self.continuation, first=tau == 0)
+                continuation=self.continuation, first=tau == 0, scale=self.imagine_scale)
             taken.append(act)
             score += self.gamma ** (tau + 1) * reward
         self.last_actions = torch.stack(taken, 1)

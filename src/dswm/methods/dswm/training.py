@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -174,14 +175,16 @@ def make_optimizer(model: WorldModel, cfg: TrainConfig) -> torch.optim.Optimizer
 
 
 def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainConfig, seed: int,
-          checkpoint: str | Path, resume: bool = True, extra: dict | None = None) -> dict[str, list[float]]:
+          checkpoint: str | Path, resume: bool = True, extra: dict | None = None,
+          on_step: Callable[[int], None] | None = None) -> dict[str, list[float]]:
     """Run gradient steps up to ``steps`` in total (resuming from ``checkpoint`` when it exists).
 
     Args:
         model: world model (normalizer already set); replay: filled buffer; steps: total gradient steps;
         cfg: settings; seed: seeds torch and the batch sampler; checkpoint: path written every
         ``checkpoint_every`` steps and at the end; resume: continue from ``checkpoint`` if present;
-        extra: JSON-able metadata stored with the checkpoint.
+        extra: JSON-able metadata stored with the checkpoint; on_step: called with the steps done after every
+        step, before that step's checkpoint (it must leave the model, the optimizer and the RNGs as they are).
     Returns:
         History {"step": [...], "losses/<term>": [...]}: averages over windows of ~steps/log_points steps.
     """
@@ -217,6 +220,8 @@ def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainCo
             for k in HISTORY_KEYS:
                 history[f"losses/{k}"].append(acc[k] / n_acc)
             acc, n_acc = {k: 0.0 for k in HISTORY_KEYS}, 0
+        if on_step is not None:
+            on_step(step + 1)
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == steps:
             save_checkpoint(checkpoint, model=model, optimizer=opt, step=step + 1, generator=gen,
                             history=history, extra=extra or {})

@@ -13,7 +13,7 @@ import torch
 
 from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
-from dswm.methods.emorl_tcto.archive import OBJECTIVES, select_member
+from dswm.methods.emorl_tcto.archive import OBJECTIVES, non_dominated, select_member
 from dswm.methods.emorl_tcto.objectives import make_policy, policy_actions
 from dswm.methods.emorl_tcto.settings import RESUME_FREE, EMORLTCTOSettings
 from dswm.methods.emorl_tcto.training import Evolution
@@ -67,16 +67,24 @@ class EMORLTCTOController(Controller):
                             "inputs": training_inputs_hash(train_core)})
 
     # ---- training ----------------------------------------------------------------------------------------
-    def fit(self, train_core, *, run_dir) -> dict:
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
         """Run (or resume) the evolution on the TRAINING-days core; checkpoint between tasks; return the manifest.
 
         The manifest's days are every day-episode run, in order: each task's training rounds, then each
-        policy's measurement on the evaluation days.
+        policy's measurement on the evaluation days. ``snapshots``: see ``Controller.fit`` (the budget is the
+        tasks; a snapshot holds the archive the generation would end with if it ended there).
         """
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         evo = Evolution(core=train_core, settings=self.settings, seed=self.seed, device=self.device)
         ckpt, identity = run_dir / CHECKPOINT, self.identity(train_core)
+
+        def write_snapshot(path: Path) -> None:
+            self._keep(evo, train_core, with_pending=True)
+            self.save(path)
+
+        if snapshots is not None:
+            snapshots.claim(ckpt)
         state = self._checkpoint(ckpt)
         if state is not None and state.get("identity") == identity and state["tasks_done"] <= evo.total_tasks():
             evo.load_state_dict(state)  # the same run, interrupted or shorter: continue it
@@ -84,6 +92,9 @@ class EMORLTCTOController(Controller):
         every = self.settings.checkpoint_every
         while not evo.finished():
             evo.run_task()
+            if snapshots is not None:
+                snapshots.step(done=evo.tasks_done, total=evo.total_tasks(),
+                               n_transitions=evo.horizon * len(evo.day_log), write=write_snapshot)
             if evo.tasks_done % every == 0 or evo.finished():
                 evo.save(ckpt, identity)
         evo.check_record()
@@ -107,13 +118,21 @@ class EMORLTCTOController(Controller):
             return None
         return state if isinstance(state, dict) and "tasks_done" in state else None
 
-    def _keep(self, evo: Evolution, core) -> None:
-        """The archive's policies (weights only) and what acting needs, from a finished evolution."""
+    def _keep(self, evo: Evolution, core, *, with_pending: bool = False) -> None:
+        """The archive's policies (weights only) and what acting needs, from a finished evolution; with
+        ``with_pending``, from one in progress: the non-dominated members of the archive and the current
+        generation's children so far (the archive the generation would end with if it ended now; ``evo`` is
+        left as it was)."""
         ids = evo.venv.day_ids
+        members = evo.archive
+        if with_pending:
+            candidates = evo.archive + evo.pending
+            members = [candidates[i] for i in non_dominated(np.stack([evo.members[m].objectives
+                                                                      for m in candidates]))]
         self.archive = [{"id": m.id, "parent": m.parent, "generation": m.generation,
                          "weight": [float(x) for x in m.weight], "objectives": [float(x) for x in m.objectives],
                          "policy": {k: v.detach().cpu().clone() for k, v in m.params["policy"].items()}}
-                        for m in (evo.members[i] for i in evo.archive)]
+                        for m in (evo.members[i] for i in members)]
         s, grid, sc = self.settings, core.grid, core.scenario
         self.scenario = sc
         self.meta = {"format": FORMAT, "method": self.name, "seed": self.seed,

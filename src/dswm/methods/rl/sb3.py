@@ -245,8 +245,9 @@ class SB3Controller(Controller):
                 "scenario_hash": scenario.hash(), "demand_transform": DEMAND_TRANSFORM, "seed": self.seed}
 
     # ---- training ----------------------------------------------------------------------------------------
-    def fit(self, train_core, *, run_dir) -> dict:
-        """Train on the TRAINING-days core; checkpoint under run_dir; return the training manifest."""
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
+        """Train on the TRAINING-days core; checkpoint under run_dir; return the training manifest.
+        ``snapshots``: see ``Controller.fit`` (one is taken after the round that reaches each fraction)."""
         s = self.options
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -257,6 +258,8 @@ class SB3Controller(Controller):
         identity = self.identity(train_core, venv.day_ids)
         rounds = s.day_episodes // s.n_envs
         self.meta = self._meta(train_core.grid, train_core.scenario)
+        if snapshots is not None:
+            snapshots.claim(ckpt)
         resumed = self._resume(ckpt, venv, identity, rounds)
         if resumed is None:
             model, writer, done = self.build_algorithm(venv), HistoryWriter(), 0
@@ -274,6 +277,9 @@ class SB3Controller(Controller):
                 if n:
                     writer.write({"rollout/ep_rew_mean": ret, "rollout/ep_sr_mean": sr}, {}, model.num_timesteps)
                 writer.point(model.num_timesteps)
+            if snapshots is not None:
+                snapshots.step(done=r + 1, total=rounds, n_transitions=int(model.num_timesteps),
+                               write=lambda path: self._save_snapshot(path, model))
             if (r + 1) % s.checkpoint_every == 0 or r + 1 == rounds:
                 self._write_checkpoint(ckpt, model, venv, writer, r + 1, identity)
         if model.num_timesteps != horizon * len(venv.episodes) or len(venv.episodes) != s.day_episodes:
@@ -330,6 +336,11 @@ class SB3Controller(Controller):
             model.save(fh)
         with zipfile.ZipFile(tmp, "a") as zf:
             zf.writestr(META_MEMBER, json.dumps(self.meta, sort_keys=True))
+
+    def _save_snapshot(self, path: Path, model: BaseAlgorithm) -> None:
+        """The model file of ``model`` in training (:meth:`save`'s format), written atomically at ``path``."""
+        with atomic_path(path) as tmp:
+            self._save_zip(tmp, model)
 
     def save(self, path) -> None:
         """SB3's zip of the trained algorithm plus ``dswm/meta.json``, written atomically at ``path`` as named."""

@@ -128,8 +128,10 @@ class TDMPCController(Controller):
                                terminated=terms[j], own=True)
         return {"charts/episode_reward": float(rews.mean()), "charts/served_ratio": float(srs.mean())}
 
-    def fit(self, train_core, *, run_dir) -> dict:
-        """Train on the TRAINING-days core (module docstring), checkpoint under ``run_dir``; return the manifest."""
+    def fit(self, train_core, *, run_dir, snapshots=None) -> dict:
+        """Train on the TRAINING-days core (module docstring), checkpoint under ``run_dir``; return the manifest.
+        ``snapshots``: see ``Controller.fit`` (the budget is the gradient steps; the transitions are those in the
+        replay at that step, the pre-collected ones included)."""
         s, run_dir = self.settings, Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         day_ids = np.asarray(getattr(train_core, "day_ids", range(train_core.n_days)), dtype=np.int64)
@@ -150,6 +152,8 @@ class TDMPCController(Controller):
         ckpt = run_dir / "checkpoint.pt"
         extra = {"method": self.name, "seed": self.seed, "settings": self.settings_hash(),
                  "inputs": training_inputs_hash(train_core, day_ids)}
+        if snapshots is not None:
+            snapshots.claim(ckpt)
         if ckpt.exists():
             blob = torch.load(ckpt, map_location=self.device, weights_only=False)
             if blob.get("extra") == extra:      # the same run (settings, seed, data): continue it
@@ -181,6 +185,9 @@ class TDMPCController(Controller):
                     for c in CHARTS:
                         run["history"][c].append(run["charts"][c])
                     run["acc"], run["n_acc"] = dict.fromkeys(METRICS, 0.0), 0
+                if snapshots is not None:
+                    snapshots.step(done=learner.step, total=s.steps, n_transitions=replay.n_transitions,
+                                   write=self.save)
                 if learner.step % s.checkpoint_every == 0 or learner.step == target:
                     checkpoint()
 

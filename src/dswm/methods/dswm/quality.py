@@ -1,0 +1,216 @@
+"""World-model quality on evaluated days (paper Fig. 12, Section V-H): how well the DSWM world model imagines the
+days its controller actually played.
+
+The controller is replayed on evaluated days through the project's evaluation (``dswm.protocol.evaluation``), with
+every observation o_t and executed action a_t recorded (:func:`replay`); the environment is then stepped again with
+those actions for the realized served ratios SR_t. The same seed, model and days give the main evaluation's
+trajectory again (the job compares the day scores). From that record, with the model alone:
+
+* open-loop demand error (:func:`open_loop_maps`, :func:`demand_errors`): from the posterior at slot t (o_0..o_t
+  filtered, as the planner does), the prior rolled k = 1..H steps along the EXECUTED actions a_t..a_{t+k-1}; its
+  ensemble-mean map against the realized x_{t+k}, for every start t with t + H <= T - 1. Also the planner's
+  anchored map rho x_t + (1 - rho) mean and the persistence map x_t, on the same starts.
+* imagined return (:func:`imagined_rewards`): what the planner believed of the action it executed: at every slot,
+  the first imagined step of the planner's own scorer (``dswm.methods.dswm.planner.imagined_step``: prior step with
+  a_t, anchored demand, fleet moved by the environment's rules, the model's service head) gives SR_hat_{t+1}; the
+  day's imagined return is their mean over the T - 1 decisions, its realized return the mean of SR_{t+1}.
+
+Maps are in the tensor's normalized demand units (per cell and slot).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from dswm.methods.dswm.planner import imagined_step
+from dswm.methods.dswm.rssm import LatentState, map_state, stack_states
+from dswm.sim.core import core_from_tensor, fleet_state_from_obs
+from dswm.sim.physics import ServiceParams
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DayPlay:
+    """One evaluated day as the controller played it (T slots, T - 1 decisions)."""
+
+    day: int
+    """Tensor day index."""
+    label: str
+    split: str
+    demand: np.ndarray
+    """(T, R, C) the realized maps x_0..x_{T-1}."""
+    obs: list[dict[str, np.ndarray]]
+    """o_0..o_{T-2}, each {demand (w+1, R, C), fleet (K, 7), time (2,)}."""
+    actions: np.ndarray
+    """(T-1, K, 3) a_0..a_{T-2} as the controller answered them."""
+    sr: np.ndarray
+    """(T,) realized SR_0..SR_{T-1} (SR_0: the initial deployment)."""
+
+
+def replay(*, tensor, controller, scenario, seed: int, days: Mapping[str, list[int]], profile: str, device: str,
+           progress_interval_s: float) -> tuple[list[DayPlay], Any]:
+    """Evaluate ``controller`` on ``days`` (``dswm.protocol.evaluation.evaluate``, one day at a time) and record
+    what it saw and did.
+
+    Args:
+        tensor: the prepared dataset; controller: a fitted non-batched controller; scenario: the evaluation's.
+        days: {split: tensor day indices}, in the order the main evaluation ran them.
+    Returns:
+        (one :class:`DayPlay` per evaluated day, in order; the evaluation's ``EvalResult``).
+    Raises:
+        ValueError: the controller is batched (its observations are not seen one day at a time).
+    """
+    from dswm.protocol import evaluation
+
+    if controller.batched:
+        raise ValueError(f"{controller.name}: a batched controller cannot be replayed one day at a time")
+    seen: list[dict] = []
+    reset, act = controller.reset, controller.act
+
+    def recording_reset(ctx):
+        seen.append({"ctx": ctx, "obs": [], "actions": []})
+        return reset(ctx)
+
+    def recording_act(obs):
+        action = act(obs)
+        seen[-1]["obs"].append({k: np.array(v, copy=True) for k, v in obs.items()})
+        seen[-1]["actions"].append(np.array(action, dtype=np.float32, copy=True))
+        return action
+
+    controller.reset, controller.act = recording_reset, recording_act
+    try:
+        result = evaluation.evaluate(tensor=tensor, controller=controller, scenario=scenario, seed=seed,
+                                     limits={"id": None, "ood": None}, profile=profile, device=device,
+                                     batch_days=False, progress_interval_s=progress_interval_s, trajectory=False,
+                                     days=days)
+    finally:
+        del controller.reset, controller.act  # the class's methods again
+    plays = []
+    for rec in seen:
+        ctx = rec["ctx"]
+        actions = np.stack(rec["actions"])
+        plays.append(DayPlay(day=int(ctx.day), label=str(ctx.label), split=str(ctx.split),
+                             demand=np.asarray(tensor.demand[ctx.day], dtype=np.float32), obs=rec["obs"],
+                             actions=actions, sr=realized_sr(tensor, scenario, ctx.day, actions, device=device)))
+    return plays, result
+
+
+def realized_sr(tensor, scenario, day: int, actions: np.ndarray, *, device: str = "cpu") -> np.ndarray:
+    """(T,) SR_0..SR_{T-1} of tensor day ``day`` played with ``actions`` (T-1, K, 3) in the environment."""
+    core = core_from_tensor(tensor, scenario, [day], device=device)
+    core.reset([0])
+    sr = [float(core.sr0[0])]
+    for a in actions:
+        sr.append(float(core.step(a[None]).sr[0]))
+    return np.asarray(sr, dtype=np.float64)
+
+
+@torch.no_grad()
+def posteriors(model, play: DayPlay) -> LatentState:
+    """The planner's posterior at every decision slot: fields (T-1, .), row t after filtering o_0..o_t (with the
+    executed a_0..a_{t-1}), as ``DSWMController`` filters them."""
+    device = model.cells.device
+    state = model.rssm.initial(1, device=device)
+    prev = torch.zeros(1, *play.actions.shape[1:], device=device)
+    out = []
+    for obs, action in zip(play.obs, play.actions):
+        state = model.filter_step(state, prev, torch.as_tensor(obs["demand"], device=device)[None],
+                                  torch.as_tensor(obs["fleet"], device=device)[None],
+                                  torch.as_tensor(obs["time"], device=device)[None])
+        out.append(map_state(state, lambda x: x[0]))
+        prev = torch.as_tensor(action, device=device)[None].clamp(-1.0, 1.0)
+    return stack_states(out)
+
+
+@torch.no_grad()
+def open_loop_maps(model, posts: LatentState, actions: np.ndarray, starts: np.ndarray, horizon: int) -> np.ndarray:
+    """The model's open-loop imagination from the posteriors at ``starts`` along the executed actions.
+
+    Args:
+        posts: posteriors, fields (T-1, .) (:func:`posteriors`); actions: (T-1, K, 3) executed a_0..a_{T-2};
+        starts: (N,) slots t with t + horizon <= T - 1; horizon: imagined steps H.
+    Returns:
+        (H, N, G) the ensemble-mean map of imagined step k (row k-1) from start t: the model's x_hat_{t+k}.
+    """
+    device = model.cells.device
+    starts = np.asarray(starts, dtype=np.int64)
+    if len(starts) and starts.max() + horizon > len(actions):
+        raise ValueError(f"open-loop imagination: start {starts.max()} + horizon {horizon} passes the day's last "
+                         f"action ({len(actions)} decisions)")
+    act = torch.as_tensor(np.clip(actions, -1.0, 1.0), dtype=torch.float32, device=device).flatten(1)  # (T-1, A)
+    idx = torch.as_tensor(starts, device=device)
+    state = map_state(posts, lambda x: x[idx])
+    maps = []
+    for k in range(horizon):
+        state = model.rssm.img_step(state, act[idx + k], sample=False)
+        maps.append(model.demand_members(model.rssm.feat(state)).mean(0))
+    return torch.stack(maps).cpu().numpy()
+
+
+def demand_errors(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray, rho: float) -> dict[str, np.ndarray]:
+    """Mean squared demand error per imagined step, over starts and cells.
+
+    Args:
+        pred: (H, N, G) imagined maps (:func:`open_loop_maps`); demand: (T, G) realized maps x_0..x_{T-1};
+        starts: (N,) the start slots of ``pred``'s rows; rho: the planner's anchor coefficient.
+    Returns:
+        {"mse_model", "mse_anchored", "mse_persistence"}: (H,) each, entry k-1 the mean over starts t and cells of
+        the squared error against x_{t+k} of the model's map, of rho x_t + (1 - rho) model map, and of x_t.
+    """
+    horizon = pred.shape[0]
+    starts = np.asarray(starts, dtype=np.int64)
+    now = demand[starts].astype(np.float64)                                            # (N, G)
+    truth = np.stack([demand[starts + k] for k in range(1, horizon + 1)]).astype(np.float64)  # (H, N, G)
+    model = pred.astype(np.float64)
+    anchored = rho * now[None] + (1.0 - rho) * model
+    return {"mse_model": ((model - truth) ** 2).mean(axis=(1, 2)),
+            "mse_anchored": ((anchored - truth) ** 2).mean(axis=(1, 2)),
+            "mse_persistence": ((now[None] - truth) ** 2).mean(axis=(1, 2))}
+
+
+@torch.no_grad()
+def imagined_rewards(model, posts: LatentState, play: DayPlay, *, grid, scenario, rho: float,
+                     lambda_u: float) -> tuple[np.ndarray, np.ndarray]:
+    """What the planner believed of each executed action: the first imagined step of its scorer.
+
+    Returns:
+        (SR_hat (T-1,), reward (T-1,)): entry t the imagined SR_{t+1} of a_t from the posterior at t, and the
+        planner's reward SR_hat - lambda_u u of that step.
+    """
+    device = model.cells.device
+    fleet = fleet_state_from_obs(np.stack([o["fleet"] for o in play.obs]), grid, scenario)
+    fleet = type(fleet)(*(t.to(device) for t in fleet))
+    act = torch.as_tensor(play.actions, dtype=torch.float32, device=device).clamp(-1.0, 1.0)    # (T-1, K, 3)
+    # x_now of each row: the observed map of its slot (the scorer's (G,) broadcast over the N = T-1 rows).
+    x_now = torch.as_tensor(play.demand[: len(play.actions)], device=device).flatten(1)       # (T-1, G)
+    kw = dict(x_now=x_now, x_true=None, cells=grid.cells(device=device), geom=grid.geometry(), scenario=scenario,
+              params=ServiceParams.from_scenario(scenario), rho=rho, continuation="hold", first=True)
+    sr_hat = imagined_step(model, fleet, posts, act, None, None, lambda_u=0.0, **kw)[-1]
+    reward = imagined_step(model, fleet, posts, act, None, None, lambda_u=lambda_u, **kw)[-1]
+    return sr_hat.cpu().numpy().astype(np.float64), reward.cpu().numpy().astype(np.float64)
+
+
+def day_quality(model, play: DayPlay, *, grid, scenario, horizon: int, rho: float, lambda_u: float) -> dict:
+    """Everything the figure needs of one played day.
+
+    Returns:
+        {"starts": (N,) start slots 0..T-1-H, **demand_errors (H,) each, "sr_hat", "reward", "sr" (T-1,) the
+        imagined and realized SR_1..SR_{T-1}, "one_step": (T, R, C) the model's one-step map of every slot
+        (x_hat_t from the posterior at t-1 and a_{t-1}; NaN at slot 0)}.
+    Raises:
+        ValueError: the day has fewer than ``horizon`` decisions.
+    """
+    n_dec = len(play.actions)
+    if not 0 < horizon <= n_dec:
+        raise ValueError(f"figures.wm_quality.horizon: expected 1..{n_dec} (the decisions of a day), found {horizon}")
+    posts = posteriors(model, play)
+    demand = play.demand.reshape(play.demand.shape[0], -1)
+    starts = np.arange(0, n_dec - horizon + 1)
+    errors = demand_errors(open_loop_maps(model, posts, play.actions, starts, horizon), demand, starts, rho)
+    one = open_loop_maps(model, posts, play.actions, np.arange(n_dec), 1)[0]                 # (T-1, G)
+    one_step = np.concatenate([np.full((1, one.shape[1]), np.nan, dtype=np.float32), one.astype(np.float32)])
+    sr_hat, reward = imagined_rewards(model, posts, play, grid=grid, scenario=scenario, rho=rho, lambda_u=lambda_u)
+    return {"starts": starts, **errors, "sr_hat": sr_hat, "reward": reward, "sr": play.sr[1:],
+            "one_step": one_step.reshape(play.demand.shape)}

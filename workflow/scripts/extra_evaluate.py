@@ -1,0 +1,16 @@
+"""Evaluate one (dataset, method, seed) under an extra run's variant on the figures' days (one MLflow run)."""
+import sys
+from pathlib import Path
+
+sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
+
+from dswm.pipeline.jobs import extra_evaluate_job
+from dswm.settings import read_param
+
+w, inp, p, out = snakemake.wildcards, snakemake.input, snakemake.params, snakemake.output  # noqa: F821
+extra_evaluate_job(job=read_param(p.settings), variant=w.variant, display=p.display.value,
+                   tensor_dir=Path(inp.tensor).parent, dataset=w.dataset, method=w.method, seed=int(w.seed),
+                   days_out=out.days, trajectory_out=out.trajectory, record_out=out.record,
+                   model=inp.get("model"), manifest=inp.get("manifest"),
+                   repo=snakemake.scriptdir + "/../..",  # noqa: F821
+                   intensity=inp.get("intensity"))  # the calibrate rule's record, or None
