@@ -4,7 +4,9 @@ One run (module fixture): `snakemake tables calibrate --config profile=smoke` bu
 three datasets, prepares them, creates the MLflow store, calibrates u on the Milan training days (config.yaml
 says `calibrate`: every job that reads u takes it from that record), trains dswm and dswm_wo_dec (dswm_wo_unc and
 dswm_plus share dswm's training), evaluates every configured method on one ID and one OOD day per dataset, audits
-the tree, and writes both tables.
+the tree, and writes both tables. Then `snakemake figures`: the extra runs behind the figures (do(s) probe,
+scaling sweeps, the sample-efficiency probe of the snapshots the train jobs took, the world-model replay), every
+figure, and the audit again, now over the probe files.
 """
 import csv
 import json
@@ -59,6 +61,8 @@ def run(tmp_path_factory):
     shutil.copytree(ROOT, work, ignore=lambda d, names: [n for n in names if n in SKIP or
                                                          (Path(d).name == "benchmarks" and n == "results")])
     proc = snakemake(work, "tables", "calibrate", "--cores", "2")
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
+    proc = snakemake(work, "figures", "--cores", "2")
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
     return work
 
@@ -368,3 +372,85 @@ def test_a_job_reruns_on_the_settings_it_reads_only(run):
         assert jobs["evaluate"] == len(PAIRS)
     finally:
         (run / "config.yaml").write_text(original)
+
+
+FIGURES = ("main", "ood", "ablation", "sample_efficiency", "scaling", "training", "wm_quality", "cross_dataset",
+           "qualitative_milan", "qualitative_shanghai", "qualitative_yjmob", "qualitative_trajectories", "eda")
+
+
+def test_every_figure_is_written_with_its_data_caption_and_profile(run):
+    fig = run / "results" / "figures"
+    for name in FIGURES:
+        assert (fig / f"{name}.png").read_bytes()[:4] == b"\x89PNG", name
+        assert (fig / f"{name}.pdf").read_bytes()[:5] == b"%PDF-", name
+        first = (fig / f"{name}.csv").read_text().splitlines()[0]
+        assert first.startswith("# Paper ") and f"({name})" in first and first.endswith("(profile: smoke)"), first
+    # the main figure draws the numbers of the per-day files: Greedy's weekday bar is its seed's ID mean
+    main = pl.read_csv(fig / "main.csv", comment_prefix="#")
+    greedy = main.filter((pl.col("method") == "greedy") & (pl.col("split") == "id"))
+    assert greedy["sr_mean"].to_list() == [pytest.approx(seed_score(run, "milan", "greedy", "id"), abs=1e-12)]
+    # the audit the figures target ran covers the probe files, and passed
+    report = json.loads((run / "results" / "audit" / "report.json").read_text())
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.probes_out_of_tables")
+    assert report["passed"] and chk["passed"]
+    assert len(list((run / "results" / "probes" / "milan").glob("*/seed0/probe.parquet"))) >= 2
+
+
+def test_the_mlflow_experiment_opens_on_runs_and_each_evaluation_records_its_demand_tensor(run):
+    from prep.rawio import sha256_file
+
+    client, runs = evaluate_runs(run)
+    exp = client.get_experiment_by_name(load_yaml(run / "config.yaml")["mlflow"]["experiment"])
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+    digests = {d: sha256_file(run / "results" / "data" / d / "demand.parquet")[:16] for d in DATASETS}
+    for r in runs:
+        (entry,) = r.inputs.dataset_inputs
+        assert (entry.dataset.name, entry.dataset.digest) == (r.data.tags["dataset"], digests[r.data.tags["dataset"]])
+    dswm = next(r for r in runs if (r.data.tags["dataset"], r.data.tags["method"]) == ("milan", "dswm"))
+    logged = {a.path for a in client.list_artifacts(dswm.info.run_id, "figures")}
+    assert {"figures/main.png", "figures/ood.png", "figures/ablation.png", "figures/wm_quality.png"} <= logged
+
+
+def test_a_probe_number_copied_into_a_table_source_turns_the_audit_red(run, tmp_path):
+    """The audit's proof that probe numbers stay out of the tables, on the smoke run's real probe files: a
+    checkpoint's probe row copied into the method's days.parquet, its content record re-written so that only the
+    probe check can see it, fails protocol.probes_out_of_tables, naming that file."""
+    from dswm.protocol.evaluation import write_eval_record
+
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    found = None
+    for path in sorted((run / "results" / "probes" / "milan").glob("*/seed0/probe.parquet")):
+        probe = pl.read_parquet(path)
+        own = probe.filter(pl.col("sr_mean") != pl.col("evaluated_sr_mean"))
+        if own.height:
+            found = path.parent.parent.name, own.row(0, named=True)
+            break
+    assert found is not None, "no probe value differs from its evaluation's"
+    method, row = found
+    result = run / "results" / "milan" / method / "seed0"
+    days_path, record = result / "days.parquet", result / "eval_manifest.json"
+    originals = {p: p.read_bytes() for p in (days_path, record)}
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(days_path)  # keeps the file's schema and metadata: only one value changes
+    i = table.schema.get_field_index("sr_mean")
+    values = [row["sr_mean"] if d == row["day"] else v
+              for d, v in zip(table["day"].to_pylist(), table["sr_mean"].to_pylist())]
+    assert values != table["sr_mean"].to_pylist()
+    try:
+        pq.write_table(table.set_column(i, table.schema.field(i), pa.array(values, table.schema.field(i).type)),
+                       days_path)
+        write_eval_record(record, {"days.parquet": days_path, "trajectory.npz": result / "trajectory.npz"})
+        out = tmp_path / "audit"
+        proc = subprocess.run([sys.executable, "-m", "audits", "--root", str(run), "--config", str(run / "config.yaml"),
+                               "--profile", "smoke", "--out", str(out)], cwd=run, env=env, capture_output=True,
+                              text=True, timeout=600)
+    finally:
+        for p, data in originals.items():
+            p.write_bytes(data)
+    assert proc.returncode == 1
+    report = json.loads((out / "report.json").read_text())
+    assert [c["id"] for c in report["checks"] if not c["passed"]] == ["protocol.probes_out_of_tables"]
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.probes_out_of_tables")
+    assert any(f"results/milan/{method}/seed0/days.parquet" in m for m in chk["failures"]), chk["failures"]

@@ -112,3 +112,14 @@ def figure_outputs(name, category, subcategory=None):
         "csv": report(files["csv"], caption=f"../report/{name}.rst", category=category,
                       subcategory=subcategory, labels={"figure": name, "file": "data (CSV)"}),
     }
+
+
+def figure_attach(stages, datasets=None, methods=None):
+    """``params.attach`` of a figure rule: the FINISHED MLflow runs its PNG and PDF are logged beside, those of
+    ``stages`` restricted to ``datasets`` and ``methods`` (None: any) of this profile
+    (dswm.pipeline.tracking.attach_figure_outputs)."""
+    from dswm.config import to_plain
+
+    return S.param({"mlflow": to_plain(SETTINGS.mlflow), "profile": PROFILE, "stages": list(stages),
+                    "datasets": None if datasets is None else list(datasets),
+                    "methods": None if methods is None else list(methods)})

@@ -118,9 +118,11 @@ rule figure_ablation:
         ablation=main_days(_ABLATED, SETTINGS.seeds(FIG_DATASET)),  # panel (a): every seed of the profile
         reference=main_days(_PROBED, FIGURES_SETTINGS.seeds),  # panel (b), s = 1
         probe=extra_days({"do"}),
+        mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
     output:
         **figure_outputs("ablation", "Ablation and counterfactual"),
     params:
+        attach=figure_attach(["evaluate", "extra"], [FIG_DATASET], dict.fromkeys(_ABLATED + _PROBED)),
         **_FIG_PARAMS,
         order=_ABLATED,
         probe_methods=_PROBED,
@@ -137,9 +139,11 @@ rule figure_scaling:
     input:
         reference=main_days(_SCALED, FIGURES_SETTINGS.seeds),  # the scenario's own K and u x 1
         runs=extra_days({"K", "u"}),
+        mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
     output:
         **figure_outputs("scaling", "Scaling"),
     params:
+        attach=figure_attach(["evaluate", "extra"], [FIG_DATASET], _SCALED),
         **_FIG_PARAMS,
         methods=_SCALED,
         labels={m: SETTINGS.methods[m].label for m in _SCALED},

@@ -64,7 +64,21 @@ rule figure_eda:
         "../scripts/figure_results.py"
 
 
-# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed).
+# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed),
+# then the whole leakage audit again, now over the probe files too: it rewrites results/audit/report.{json,md} and
+# fails the call when any check fails, e.g. when a probe number reached a table's source. Like `audit`, a target
+# without output, so it runs on every call.
 rule figures:
     input:
         FIGURE_TARGETS,
+        probe_files=probe_files(),  # audited (protocol.probes_out_of_tables) once they exist
+        **AUDIT_INPUTS,
+    params:
+        settings=AUDIT_SETTINGS,
+        configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
+        json=rules.audit_report.output.json,
+        md=rules.audit_report.output.md,
+    log:
+        "logs/audit/figures.log",
+    script:
+        "../scripts/audit.py"

@@ -46,9 +46,11 @@ rule figure_sample_efficiency:
     input:
         probes=probe_files(),
         meta=rules.prepare.output.meta.format(dataset=FIGURES_SETTINGS.dataset),
+        mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
     output:
         **figure_outputs("sample_efficiency", "Sample efficiency"),
     params:
+        attach=figure_attach(["train", "probe"], [FIGURES_SETTINGS.dataset], PROBE_METHODS),
         profile=PROFILE,
         methods=PROBE_METHODS,
         labels={m: SETTINGS.methods[m].label for m in PROBE_METHODS},

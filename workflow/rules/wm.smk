@@ -72,9 +72,11 @@ if dswm_runs_on(WM_DATASET):
             rmse=wm_files(WM_DATASET, "rmse.parquet"),
             returns=wm_files(WM_DATASET, "returns.parquet"),
             meta=rules.prepare.output.meta.format(dataset=WM_DATASET),
+            mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
         output:
             **figure_outputs("wm_quality", "World model"),
         params:
+            attach=figure_attach(["wm", "evaluate"], [WM_DATASET], [WM_METHOD]),
             profile=PROFILE,
         log:
             "logs/figures/wm_quality.log",
@@ -92,9 +94,11 @@ if _TRAINING_DATASETS:
             histories=[rules.train.output.history.format(dataset=d, method=WM_METHOD, seed=s)
                        for d in _TRAINING_DATASETS for s in SETTINGS.seeds(d)],
             metas=[rules.prepare.output.meta.format(dataset=d) for d in _TRAINING_DATASETS],
+            mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
         output:
             **figure_outputs("training", "Training"),
         params:
+            attach=figure_attach(["train"], _TRAINING_DATASETS, [WM_METHOD]),
             profile=PROFILE,
             datasets=_TRAINING_DATASETS,
         log:
@@ -113,9 +117,11 @@ if dswm_runs_on("milan"):
             meta=rules.prepare.output.meta.format(dataset="milan"),
             grid=str(MILAN_ASSETS / "milano-grid.geojson"),
             totals=str(MILAN_ASSETS / "square_totals_2mo.csv"),
+            mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
         output:
             **figure_outputs("qualitative_milan", "Qualitative"),
         params:
+            attach=figure_attach(["wm"], ["milan"], [WM_METHOD]),
             profile=PROFILE,
             kind="milan",
         log:
@@ -136,9 +142,11 @@ for _region in ("shanghai", "yjmob"):
                 raw=raw_files(_region),
                 tensor=rules.prepare.output.tensor.format(dataset=_region),
                 meta=rules.prepare.output.meta.format(dataset=_region),
+                mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
             output:
                 **figure_outputs(f"qualitative_{_region}", "Qualitative"),
             params:
+                attach=figure_attach(["evaluate"], [_region]),
                 profile=PROFILE,
                 kind=_region,
                 settings=S.param(S.prep_slice(SETTINGS, _region)),
@@ -159,9 +167,11 @@ if _TRAJECTORY_METHODS:
                           for m in _TRAJECTORY_METHODS],
             tensor=rules.prepare.output.tensor.format(dataset=WM_DATASET),
             meta=rules.prepare.output.meta.format(dataset=WM_DATASET),
+            mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
         output:
             **figure_outputs("qualitative_trajectories", "Qualitative"),
         params:
+            attach=figure_attach(["evaluate"], [WM_DATASET], _TRAJECTORY_METHODS),
             profile=PROFILE,
             kind="trajectories",
             methods=_TRAJECTORY_METHODS,

@@ -14,3 +14,7 @@ probe = do_probe_days(read_days(inp.reference), read_days(inp.probe) if inp.prob
                       methods=p.probe_methods, seeds=p.seeds, limits=EvalDayLimits(**p.eval_days))
 draw_ablation(ablation, probe, order=p.order, labels=p.labels, split_labels=p.split_labels, profile=p.profile,
               source=",".join(sorted(set(ablation["data_source"]))), out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

@@ -17,3 +17,7 @@ elif p.kind == "trajectories":
 else:
     q.region_figure(dataset=p.kind, settings=read_param(p.settings), raw=list(inp.raw),
                     tensor_dir=Path(inp.tensor).parent, profile=p.profile, out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

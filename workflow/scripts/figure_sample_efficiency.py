@@ -14,3 +14,7 @@ with open(inp.meta, encoding="utf-8") as fh:
     source = json.load(fh)["source"]
 draw_sample_efficiency(read_probes(inp.probes), order=p.methods, labels=p.labels, fractions=p.fractions,
                        profile=p.profile, source=source, out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

@@ -16,3 +16,7 @@ days = scaling_days(main, read_days(inp.runs) if inp.runs else None, methods=p.m
 draw_scaling(days, order=p.methods, labels=p.labels, split_labels=p.split_labels,
              reference={"K": p.n_uavs, "u": 1.0}, profile=p.profile,
              source=",".join(sorted(set(main["data_source"]))), out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

@@ -14,3 +14,7 @@ sources = {DATASET_LABELS.get(m["dataset"], m["dataset"]): m["source"]
            for m in (read_meta(path, keys=("dataset", "source")) for path in inp.metas)}
 draw_training(read_histories(inp.histories), datasets=p.datasets, labels=DATASET_LABELS, profile=p.profile,
               source=sources, out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

@@ -15,3 +15,7 @@ meta = read_meta(inp.meta, keys=("dataset", "source"))
 draw_wm_quality(pl.concat([pl.read_parquet(f) for f in inp.rmse]), pl.concat([pl.read_parquet(f) for f in inp.returns]),
                 dataset_label=DATASET_LABELS.get(meta["dataset"], meta["dataset"]), profile=p.profile,
                 source=meta["source"], out=out)
+
+from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
+
+attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows

@@ -141,30 +141,74 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
         core = training_core(tensor, scenario, device=ev.device)
         snaps = snapshots.for_train_job(job=job, method=method, seed=seed, run_dir=run_dir, data_files=data_files)
         manifest = dict(ctrl.fit(core, run_dir=run_dir, **({"snapshots": snaps} if snaps is not None else {})))
-        history = manifest.pop("history", None) or {}
-        steps = history.pop("step", None)
-        for name, values in history.items():
-            run.log_series(name, values, steps)
-        if history_out is not None:
-            from dswm.pipeline.history import write_history
 
-            write_history(history_out, history, steps, dataset=dataset, method=method, seed=seed)
-        ckpt = manifest.get("checkpoint")
-        if ckpt:
-            if not Path(ckpt).is_file():
-                raise FileNotFoundError(f"{manifest_out}: {method}.fit() recorded checkpoint {ckpt}, which does "
-                                        f"not exist; expected the file training ended with")
-            manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
-        ctrl.save(model_out)
-        if snapshots_out is not None and snapshots.export(snaps, snapshots_out, method=method, seed=seed):
-            run.log_artifact(Path(snapshots_out) / snapshots.INDEX_FILE, "snapshots")
-        manifest.setdefault("model", str(model_out))
-        manifest.update(model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
-        write_json(manifest_out, manifest)
-        run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
-                         "train/steps": float(manifest.get("steps", 0))})
-        run.log_artifact(manifest_out)
+        def export_snapshots() -> None:
+            if snapshots_out is not None and snapshots.export(snaps, snapshots_out, method=method, seed=seed):
+                run.log_artifact(Path(snapshots_out) / snapshots.INDEX_FILE, "snapshots")
+
+        return finish_training(run, ctrl, manifest, method=method, model_out=model_out, manifest_out=manifest_out,
+                               data_files=data_files, history_out=history_out, after_save=export_snapshots,
+                               labels={"dataset": dataset, "method": method, "seed": seed})
+
+
+def finish_training(run: tracking.JobRun, ctrl: Controller, manifest: dict, *, method: str, model_out: str | Path,
+                    manifest_out: str | Path, data_files: list[dict], history_out: str | Path | None = None,
+                    after_save=None, labels: Mapping[str, Any], extra: Mapping[str, Any] | None = None) -> dict:
+    """What every train job does once ``fit`` returned ``manifest``: log the loss history to MLflow (and write
+    it to ``history_out``), hash the checkpoint, save the model, call ``after_save``, write the manifest with the
+    model's and the read files' hashes (and ``extra``) last, and attach it to the run.
+
+    Args:
+        labels: {"dataset", "method", "seed"} of the history file's rows.
+
+    Returns:
+        The manifest written (without the loss history).
+    """
+    history = manifest.pop("history", None) or {}
+    steps = history.pop("step", None)
+    for name, values in history.items():
+        run.log_series(name, values, steps)
+    if history_out is not None:
+        from dswm.pipeline.history import write_history
+
+        write_history(history_out, history, steps, **labels)
+    ckpt = manifest.get("checkpoint")
+    if ckpt:
+        if not Path(ckpt).is_file():
+            raise FileNotFoundError(f"{manifest_out}: {method}.fit() recorded checkpoint {ckpt}, which does "
+                                    f"not exist; expected the file training ended with")
+        manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
+    ctrl.save(model_out)
+    if after_save is not None:
+        after_save()
+    manifest.setdefault("model", str(model_out))
+    manifest.update(**(extra or {}), model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
+    write_json(manifest_out, manifest)
+    run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
+                     "train/steps": float(manifest.get("steps", 0))})
+    run.log_artifact(manifest_out)
     return manifest
+
+
+def load_source_model(run: tracking.JobRun, ctrl: Controller, m: MethodSettings, *, model: str | Path | None,
+                      manifest: str | Path | None, what: str | None = None) -> dict:
+    """Load the model of ``m``'s training source into ``ctrl`` when the method learns, after checking its hash
+    (:func:`model_record`), and tag the run with it; returns the model record (the empty one for a method that does
+    not learn).
+
+    Raises:
+        ValueError: a learning method without its source's model file or manifest (``what`` names the job).
+    """
+    if not ctrl.learns:
+        return model_record(method=m.name)
+    if model is None or manifest is None:
+        raise ValueError(f"{what or m.name}: a learning method needs its training source's model file and "
+                         f"train_manifest.json (found model={model!r}, manifest={manifest!r})")
+    record = model_record(method=m.name, source=m.training_source or m.name, model=model, manifest=manifest)
+    run.set_tags({"train_source": record["train_source"], "model_path": record["model"],
+                  "model_sha256": record["model_sha256"]})
+    ctrl.load(model)
+    return record
 
 
 def model_record(*, method: str, source: str | None = None, model: str | Path | None = None,
@@ -219,16 +263,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
                           method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
         log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
-        record = model_record(method=method)
-        if ctrl.learns:
-            if model is None or manifest is None:
-                raise ValueError(f"{method}: a learning method needs its training source's model file and "
-                                 f"train_manifest.json (found model={model!r}, manifest={manifest!r})")
-            source = m.training_source or method
-            record = model_record(method=method, source=source, model=model, manifest=manifest)
-            run.set_tags({"train_source": source, "model_path": record["model"],
-                          "model_sha256": record["model_sha256"]})
-            ctrl.load(model)
+        record = load_source_model(run, ctrl, m, model=model, manifest=manifest)
         settings_record = method_record(m, ctrl)
         result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
                                      limits={"id": limits.id, "ood": limits.ood}, profile=job["profile"],
@@ -371,24 +406,13 @@ def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | P
     with _variant_run(job=job, part="train", variant=variant, dataset=dataset, method=method, seed=seed,
                       repo=repo) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "train"})
+        log_demand_input(run, tensor_dir, dataset, "training")
         torch.manual_seed(seed)
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
         manifest = dict(ctrl.fit(training_core(tensor, scenario, device=ev.device), run_dir=run_dir))
-        history = manifest.pop("history", None) or {}
-        steps = history.pop("step", None)
-        for name, values in history.items():
-            run.log_series(name, values, steps)
-        ckpt = manifest.get("checkpoint")
-        if ckpt:
-            manifest["checkpoint_sha256"] = sha256_file(Path(ckpt))
-        ctrl.save(model_out)
-        manifest.setdefault("model", str(model_out))
-        manifest.update(variant=variant, model_sha256=sha256_file(Path(model_out)), data_files_read=data_files)
-        write_json(manifest_out, manifest)
-        run.log_metrics({"train/n_transitions": float(manifest.get("n_transitions", 0)),
-                         "train/steps": float(manifest.get("steps", 0))})
-        run.log_artifact(manifest_out)
-    return manifest
+        return finish_training(run, ctrl, manifest, method=method, model_out=model_out, manifest_out=manifest_out,
+                               data_files=data_files, labels={"dataset": dataset, "method": method, "seed": seed},
+                               extra={"variant": variant})
 
 
 def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display, tensor_dir: str | Path,
@@ -413,16 +437,9 @@ def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display
     with _variant_run(job=job, part="evaluate", variant=variant, dataset=dataset, method=method, seed=seed,
                       repo=repo) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "evaluate"})
+        log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
-        record = model_record(method=method)
-        if ctrl.learns:
-            if model is None or manifest is None:
-                raise ValueError(f"{method} ({variant}): a learning method needs its training source's model file "
-                                 f"and train_manifest.json (found model={model!r}, manifest={manifest!r})")
-            record = model_record(method=method, source=m.training_source or method, model=model, manifest=manifest)
-            run.set_tags({"train_source": record["train_source"], "model_path": record["model"],
-                          "model_sha256": record["model_sha256"]})
-            ctrl.load(model)
+        record = load_source_model(run, ctrl, m, model=model, manifest=manifest, what=f"{method} ({variant})")
         result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
                                      limits={"id": limits.id, "ood": limits.ood}, profile=job["profile"],
                                      device=ev.device, batch_days=ev.batch_days,

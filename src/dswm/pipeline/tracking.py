@@ -296,3 +296,11 @@ def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path]
         for p in paths:
             _retry(client.log_artifact, r.info.run_id, str(p), artifact_path)
     return len(chosen)
+
+
+def attach_figure_outputs(attach: str, out: Mapping[str, str | Path]) -> int:
+    """A figure rule's side of ``figure_attach`` (workflow/rules/common.smk): log the PNG and PDF of ``out`` beside
+    the runs ``attach`` (its canonical JSON) names; returns how many runs received them."""
+    sel = json.loads(attach)
+    return attach_figures(mlflow_cfg=sel["mlflow"], paths=[out["png"], out["pdf"]], stage=sel["stages"],
+                          datasets=sel["datasets"], methods=sel["methods"], profile=sel["profile"])
