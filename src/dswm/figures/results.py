@@ -29,6 +29,11 @@ def method_order(methods: Sequence[str], classes: Mapping[str, str], class_order
     return sorted(methods, key=lambda m: (rank.get(classes[m], len(rank)), methods.index(m)))
 
 
+def in_order(df: pl.DataFrame, order: Sequence[str], *then: str) -> pl.DataFrame:
+    """``df``'s rows with methods in ``order`` (every method of ``df`` must be in it), then sorted by ``then``."""
+    return df.sort(pl.col("method").replace_strict({m: i for i, m in enumerate(order)}), *then)
+
+
 def split_summary(days: pl.DataFrame, value: str) -> pl.DataFrame:
     """Per (dataset, method, split): ``value``'s mean over seeds of each seed's mean day, its sample std and the
     number of seeds (:func:`dswm.figures.common.mean_std`)."""
@@ -86,7 +91,7 @@ def draw_main(days: pl.DataFrame, *, dataset: str, labels: Mapping[str, str], cl
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     data = table.with_columns(pl.col("method").replace_strict(labels, default=None).alias("label"),
                               pl.col("method").replace_strict(classes, default=None).alias("class"))
-    data = data.sort(pl.col("method").replace_strict({m: i for i, m in enumerate(order)}), "split")
+    data = in_order(data, order, "split")
     save_figure(fig, data, **out, profile=profile, source=source,
                 caption=f"Paper Fig. 7 (main): {DATASET_LABELS.get(dataset, dataset)} main results per method, "
                         f"grouped by class: (a) served ratio, (b) energy per slot, (c) energy efficiency "
@@ -142,7 +147,7 @@ def draw_ood(days: pl.DataFrame, *, dataset: str, labels: Mapping[str, str], cla
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     data = per_day.join(deg, on="method", how="left").with_columns(
         pl.col("method").replace_strict(labels, default=None).alias("label_method"))
-    data = data.sort(pl.col("method").replace_strict({m: i for i, m in enumerate(order)}), "day")
+    data = in_order(data, order, "day")
     save_figure(fig, data, **out, profile=profile, source=source,
                 caption=f"Paper Fig. 6 (ood): OOD analysis on {DATASET_LABELS.get(dataset, dataset)} over the test "
                         f"period: (a) per-method degradation ({split_labels['id']} minus {split_labels['ood']}); "
@@ -177,9 +182,8 @@ def draw_cross(days: pl.DataFrame, *, labels: Mapping[str, str], classes: Mappin
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8, ncol=len(datasets), loc="upper center")
     fig.tight_layout(rect=(0, 0.04, 1, 1))
-    data = table.filter(pl.col("method").is_in(order)).with_columns(
-        pl.col("method").replace_strict(labels, default=None).alias("label")).sort(
-        pl.col("method").replace_strict({m: i for i, m in enumerate(order)}), "dataset", "split")
+    data = in_order(table.filter(pl.col("method").is_in(order)).with_columns(
+        pl.col("method").replace_strict(labels, default=None).alias("label")), order, "dataset", "split")
     seeds = ", ".join(f"{DATASET_LABELS[d]} {table.filter(pl.col('dataset') == d)['seeds'].max()}" for d in datasets)
     save_figure(fig, data, **out, profile=profile, source=source,
                 caption=f"Paper Fig. 13 (cross_dataset): Table IV as grouped bars, {split_labels['id']} and "
