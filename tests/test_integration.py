@@ -384,7 +384,7 @@ def test_every_figure_is_written_with_its_data_caption_and_profile(run):
         assert (fig / f"{name}.png").read_bytes()[:4] == b"\x89PNG", name
         assert (fig / f"{name}.pdf").read_bytes()[:5] == b"%PDF-", name
         first = (fig / f"{name}.csv").read_text().splitlines()[0]
-        assert first.startswith("# Paper ") and f"({name})" in first and first.endswith("(profile: smoke)"), first
+        assert first.startswith("# Paper ") and f"({name}" in first and first.endswith("(profile: smoke)"), first
     # the main figure draws the numbers of the per-day files: Greedy's weekday bar is its seed's ID mean
     main = pl.read_csv(fig / "main.csv", comment_prefix="#")
     greedy = main.filter((pl.col("method") == "greedy") & (pl.col("split") == "id"))

@@ -284,5 +284,5 @@ def test_the_figure_draws_mean_and_std_over_seeds_against_transitions(tmp_path):
     assert ppo["n_transitions"] == 8000 and ppo["seeds"] == 2
     assert ppo["sr_mean"] == pytest.approx(0.51) and ppo["sr_mean_std"] == pytest.approx(0.02 / np.sqrt(2))
     header = out["csv"].read_text().splitlines()[0]
-    assert header.startswith("# Paper Fig. 9 (sample efficiency)") and "probe day 2013-12-21" in header
+    assert header.startswith("# Paper Fig. 9 (sample_efficiency)") and "probe day 2013-12-21" in header
     assert "never in a table" in header

@@ -1,4 +1,4 @@
-"""Paper Fig. 9 (sample efficiency): served ratio on the probe's fixed test day against the environment transitions
+"""Paper Fig. 9 (sample_efficiency): served ratio on the probe's fixed test day against the environment transitions
 consumed (log scale), one line per probed method, from the probe files of workflow/rules/probes.smk
 (``results/probes/<dataset>/<method>/seed<seed>/probe.parquet``, ``dswm.protocol.probe``).
 
@@ -16,7 +16,7 @@ import polars as pl
 
 from dswm.figures.common import plt, save_figure
 
-CAPTION = ("Paper Fig. 9 (sample efficiency): served ratio on the probe day {day} ({dataset}, its first ID test day) "
+CAPTION = ("Paper Fig. 9 (sample_efficiency): served ratio on the probe day {day} ({dataset}, its first ID test day) "
            "of each method's snapshots at fractions {fractions} of its fixed training budget, against the "
            "environment transitions consumed (pre-collected ones included; log scale){spread}; (b) the same against "
            "the budget done (a method whose transitions are all collected before training, as DSWM's, stands at "
