@@ -9,9 +9,12 @@ from conftest import ROOT
 SRC = ROOT / "src" / "dswm"
 FORBIDDEN = {
     # layer: the packages it must not import (the layers above it)
-    "sim": ("dswm.methods", "dswm.protocol", "dswm.pipeline", "dswm.settings"),
-    "methods": ("dswm.protocol", "dswm.pipeline", "dswm.settings"),
-    "protocol": ("dswm.pipeline", "dswm.settings"),
+    "sim": ("dswm.methods", "dswm.protocol", "dswm.pipeline", "dswm.settings", "dswm.figures"),
+    "methods": ("dswm.protocol", "dswm.pipeline", "dswm.settings", "dswm.figures"),
+    "protocol": ("dswm.pipeline", "dswm.settings", "dswm.figures"),
+    "pipeline": ("dswm.figures",),
+    # the figures draw from result files only: no simulator, no method
+    "figures": ("dswm.sim", "dswm.methods"),
 }
 
 
@@ -57,7 +60,7 @@ def test_a_handful_of_modules_sit_directly_in_the_package():
     top = sorted(p.name for p in SRC.glob("*.py") if p.name != "__init__.py")
     assert len(top) <= 4, top
     assert {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()} == \
-        {"sim", "methods", "protocol", "pipeline"}
+        {"sim", "methods", "protocol", "pipeline", "figures"}
 
 
 def test_each_name_of_the_simulator_has_one_import_path():

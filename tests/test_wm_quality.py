@@ -17,6 +17,7 @@ from dswm.figures.training import draw_training
 from dswm.figures.wm_quality import draw_wm_quality, rank_correlation, rmse_table
 from dswm.methods.base import Controller
 from dswm.methods.dswm import quality
+from dswm.protocol.replay import replay
 from dswm.methods.dswm.world_model import WorldModel
 from dswm.pipeline.history import history_frame, read_histories, write_history
 from dswm.pipeline.wm import days_to_replay
@@ -101,9 +102,8 @@ def toy_tensor():
 def played(scenario):
     sc = dataclasses.replace(scenario, n_uavs=4, demand_intensity=150.0)
     tensor = toy_tensor()
-    plays, result = quality.replay(tensor=tensor, controller=Wander(name="wander"), scenario=sc, seed=0,
-                                   days={"id": [3], "ood": [4]}, profile="smoke", device="cpu",
-                                   progress_interval_s=60.0)
+    plays, result = replay(tensor=tensor, controller=Wander(name="wander"), scenario=sc, seed=0,
+                           days={"id": [3], "ood": [4]}, profile="smoke", device="cpu", progress_interval_s=60.0)
     return sc, tensor, plays, result
 
 

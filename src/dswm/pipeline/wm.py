@@ -25,6 +25,7 @@ from dswm.methods.dswm import quality
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.pipeline.jobs import model_record
+from dswm.protocol.replay import replay
 from dswm.settings import Display, EvalDayLimits, EvaluationSettings, MethodSettings, calibrated_scenario
 from dswm.sim.core import grid_of
 from dswm.sim.scenario import Scenario
@@ -107,9 +108,9 @@ def wm_quality_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str 
             raise ValueError(f"{m.name}: no world model and planner to measure (expected a DSWM method)")
         run.set_tags({"train_source": record["train_source"], "model_path": record["model"],
                       "model_sha256": record["model_sha256"], "data_source": tensor.meta["source"]})
-        plays, result = quality.replay(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed, days=days,
-                                       profile=job["profile"], device=ev.device,
-                                       progress_interval_s=display.progress_mininterval_s)
+        plays, result = replay(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed, days=days,
+                               profile=job["profile"], device=ev.device,
+                               progress_interval_s=display.progress_mininterval_s)
         planner = ctrl.settings.planner
         grid = grid_of(tensor)
         mbps = scenario.intensity * scenario.r0_bps / 1e6  # requested rate of one normalized unit, Mbps

@@ -1,10 +1,10 @@
 """World-model quality on evaluated days (paper Fig. 12, Section V-H): how well the DSWM world model imagines the
 days its controller actually played.
 
-The controller is replayed on evaluated days through the project's evaluation (``dswm.protocol.evaluation``), with
-every observation o_t and executed action a_t recorded (:func:`replay`); the environment is then stepped again with
-those actions for the realized served ratios SR_t. The same seed, model and days give the main evaluation's
-trajectory again (the job compares the day scores). From that record, with the model alone:
+The controller is replayed on evaluated days through the project's evaluation (``dswm.protocol.replay``: every
+observation o_t and executed action a_t recorded in a ``DayPlay``, the realized served ratios SR_t stepped again with
+those actions). The same seed, model and days give the main evaluation's trajectory again (the job compares the day
+scores). From that record (``play`` below), with the model alone:
 
 * open-loop demand error (:func:`open_loop_maps`, :func:`demand_errors`): from the posterior at slot t (o_0..o_t
   filtered, as the planner does), the prior rolled k = 1..H steps along the EXECUTED actions a_t..a_{t+k-1}; its
@@ -19,96 +19,17 @@ Maps are in the tensor's normalized demand units (per cell and slot).
 """
 from __future__ import annotations
 
-import dataclasses
-from typing import Any, Mapping
-
 import numpy as np
 import torch
 
 from dswm.methods.dswm.planner import imagined_step
 from dswm.methods.dswm.rssm import LatentState, map_state, stack_states
-from dswm.sim.core import core_from_tensor, fleet_state_from_obs
+from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.physics import ServiceParams
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class DayPlay:
-    """One evaluated day as the controller played it (T slots, T - 1 decisions)."""
-
-    day: int
-    """Tensor day index."""
-    label: str
-    split: str
-    demand: np.ndarray
-    """(T, R, C) the realized maps x_0..x_{T-1}."""
-    obs: list[dict[str, np.ndarray]]
-    """o_0..o_{T-2}, each {demand (w+1, R, C), fleet (K, 7), time (2,)}."""
-    actions: np.ndarray
-    """(T-1, K, 3) a_0..a_{T-2} as the controller answered them."""
-    sr: np.ndarray
-    """(T,) realized SR_0..SR_{T-1} (SR_0: the initial deployment)."""
-
-
-def replay(*, tensor, controller, scenario, seed: int, days: Mapping[str, list[int]], profile: str, device: str,
-           progress_interval_s: float) -> tuple[list[DayPlay], Any]:
-    """Evaluate ``controller`` on ``days`` (``dswm.protocol.evaluation.evaluate``, one day at a time) and record
-    what it saw and did.
-
-    Args:
-        tensor: the prepared dataset; controller: a fitted non-batched controller; scenario: the evaluation's.
-        days: {split: tensor day indices}, in the order the main evaluation ran them.
-    Returns:
-        (one :class:`DayPlay` per evaluated day, in order; the evaluation's ``EvalResult``).
-    Raises:
-        ValueError: the controller is batched (its observations are not seen one day at a time).
-    """
-    from dswm.protocol import evaluation
-
-    if controller.batched:
-        raise ValueError(f"{controller.name}: a batched controller cannot be replayed one day at a time")
-    seen: list[dict] = []
-    reset, act = controller.reset, controller.act
-
-    def recording_reset(ctx):
-        seen.append({"ctx": ctx, "obs": [], "actions": []})
-        return reset(ctx)
-
-    def recording_act(obs):
-        action = act(obs)
-        seen[-1]["obs"].append({k: np.array(v, copy=True) for k, v in obs.items()})
-        seen[-1]["actions"].append(np.array(action, dtype=np.float32, copy=True))
-        return action
-
-    controller.reset, controller.act = recording_reset, recording_act
-    try:
-        result = evaluation.evaluate(tensor=tensor, controller=controller, scenario=scenario, seed=seed,
-                                     limits={"id": None, "ood": None}, profile=profile, device=device,
-                                     batch_days=False, progress_interval_s=progress_interval_s, trajectory=False,
-                                     days=days)
-    finally:
-        del controller.reset, controller.act  # the class's methods again
-    plays = []
-    for rec in seen:
-        ctx = rec["ctx"]
-        actions = np.stack(rec["actions"])
-        plays.append(DayPlay(day=int(ctx.day), label=str(ctx.label), split=str(ctx.split),
-                             demand=np.asarray(tensor.demand[ctx.day], dtype=np.float32), obs=rec["obs"],
-                             actions=actions, sr=realized_sr(tensor, scenario, ctx.day, actions, device=device)))
-    return plays, result
-
-
-def realized_sr(tensor, scenario, day: int, actions: np.ndarray, *, device: str = "cpu") -> np.ndarray:
-    """(T,) SR_0..SR_{T-1} of tensor day ``day`` played with ``actions`` (T-1, K, 3) in the environment."""
-    core = core_from_tensor(tensor, scenario, [day], device=device)
-    core.reset([0])
-    sr = [float(core.sr0[0])]
-    for a in actions:
-        sr.append(float(core.step(a[None]).sr[0]))
-    return np.asarray(sr, dtype=np.float64)
-
-
 @torch.no_grad()
-def posteriors(model, play: DayPlay) -> LatentState:
+def posteriors(model, play) -> LatentState:
     """The planner's posterior at every decision slot: fields (T-1, .), row t after filtering o_0..o_t (with the
     executed a_0..a_{t-1}), as ``DSWMController`` filters them."""
     device = model.cells.device
@@ -171,7 +92,7 @@ def demand_errors(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray, rho:
 
 
 @torch.no_grad()
-def imagined_rewards(model, posts: LatentState, play: DayPlay, *, grid, scenario, rho: float,
+def imagined_rewards(model, posts: LatentState, play, *, grid, scenario, rho: float,
                      lambda_u: float) -> tuple[np.ndarray, np.ndarray]:
     """What the planner believed of each executed action: the first imagined step of its scorer.
 
@@ -192,7 +113,7 @@ def imagined_rewards(model, posts: LatentState, play: DayPlay, *, grid, scenario
     return sr_hat.cpu().numpy().astype(np.float64), reward.cpu().numpy().astype(np.float64)
 
 
-def day_quality(model, play: DayPlay, *, grid, scenario, horizon: int, rho: float, lambda_u: float) -> dict:
+def day_quality(model, play, *, grid, scenario, horizon: int, rho: float, lambda_u: float) -> dict:
     """Everything the figure needs of one played day.
 
     Returns:
