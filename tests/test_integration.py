@@ -239,34 +239,40 @@ def test_each_learning_evaluation_recorded_its_source_model_and_the_audit_verifi
 
 def test_one_test_day_in_any_learning_method_s_training_record_turns_the_audit_red(run, tmp_path):
     """The audit's proof that no learning method saw a test day, on the manifests the smoke run's real training
-    wrote: one test-day episode added to one method's record fails protocol.training_days, naming that file."""
+    wrote: one test-day episode added to each method's record fails protocol.training_days, naming every one of
+    those files (one audit run over all of them)."""
     sources = training_sources(run)
     meta = json.loads((run / "results" / "data" / "milan" / "meta.json").read_text())
     test_day = next(d for d in meta["days"] if d["split"] == "test")
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    for method in sorted(set(sources.values())):
-        path = run / "results" / "milan" / method / "seed0" / "train_manifest.json"
-        original = path.read_text()
-        man = json.loads(original)
-        assert man["days"] and man["n_transitions"] == man["transitions_per_day_episode"] * len(man["days"])
-        man["days"].append(test_day["index"])
-        man["day_labels"].append(test_day["label"])
-        man["n_transitions"] += man["transitions_per_day_episode"]
-        try:
+    methods = sorted(set(sources.values()))
+    assert len(methods) >= 2, methods
+    originals = {}
+    try:
+        for method in methods:
+            path = run / "results" / "milan" / method / "seed0" / "train_manifest.json"
+            originals[path] = path.read_text()
+            man = json.loads(originals[path])
+            assert man["days"] and man["n_transitions"] == man["transitions_per_day_episode"] * len(man["days"])
+            man["days"].append(test_day["index"])
+            man["day_labels"].append(test_day["label"])
+            man["n_transitions"] += man["transitions_per_day_episode"]
             path.write_text(json.dumps(man))
-            out = tmp_path / method
-            proc = subprocess.run([sys.executable, "-m", "audits", "--root", str(run), "--config",
-                                   str(run / "config.yaml"), "--profile", "smoke", "--out", str(out)],
-                                  cwd=run, env=env, capture_output=True, text=True, timeout=600)
-        finally:
-            path.write_text(original)
-        assert proc.returncode == 1, method
-        report = json.loads((out / "report.json").read_text())
-        chk = next(c for c in report["checks"] if c["id"] == "protocol.training_days")
-        assert not chk["passed"], method
+        out = tmp_path / "audit"
+        proc = subprocess.run([sys.executable, "-m", "audits", "--root", str(run), "--config",
+                               str(run / "config.yaml"), "--profile", "smoke", "--out", str(out)],
+                              cwd=run, env=env, capture_output=True, text=True, timeout=600)
+    finally:
+        for path, text in originals.items():
+            path.write_text(text)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    chk = next(c for c in report["checks"] if c["id"] == "protocol.training_days")
+    assert not chk["passed"]
+    for method in methods:
         assert any(f"results/milan/{method}/seed0/train_manifest.json" in m and test_day["label"] in m
-                   and "holds a test day" in m for m in chk["failures"]), chk["failures"]
-        assert [c["id"] for c in report["checks"] if not c["passed"]] == ["protocol.training_days"], method
+                   and "holds a test day" in m for m in chk["failures"]), (method, chk["failures"])
+    assert [c["id"] for c in report["checks"] if not c["passed"]] == ["protocol.training_days"]
 
 
 def evaluate_runs(work):
