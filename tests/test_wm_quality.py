@@ -17,10 +17,10 @@ from dswm.figures.training import draw_training
 from dswm.figures.wm_quality import draw_wm_quality, rank_correlation, rmse_table
 from dswm.methods.base import Controller
 from dswm.methods.dswm import quality
-from dswm.protocol.replay import replay
 from dswm.methods.dswm.world_model import WorldModel
 from dswm.pipeline.history import history_frame, read_histories, write_history
 from dswm.pipeline.wm import days_to_replay
+from dswm.protocol.replay import replay
 from dswm.settings import EvalDayLimits
 from dswm.sim.core import Grid
 from dswm.sim.physics import ServiceParams
