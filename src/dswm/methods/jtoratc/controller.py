@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Any, ClassVar, Mapping, NamedTuple
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, NamedTuple
 
 import numpy as np
 import torch
@@ -32,11 +32,13 @@ from dswm.config import ConfigError
 from dswm.methods.base import Controller, DayContext
 from dswm.methods.jtoratc.model import (Slot, association_block, bandwidth_block, concave_bridges,
                                         fit_bandwidth_logit, nearest, objective, rate_surrogate)
-from dswm.methods.jtoratc.sca import TrajectoryProgram
 from dswm.methods.search import to_action
 from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.fleet import ACTIVE, fleet_step
 from dswm.sim.physics import DEMAND_EPS, ServiceParams
+
+if TYPE_CHECKING:  # cvxpy is imported where a program is built: reading the settings needs none of it
+    from dswm.methods.jtoratc.sca import TrajectoryProgram
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +206,8 @@ class JTORATCController(Controller):
         self.bridges = concave_bridges(self.params, geom.width_m**2 + geom.height_m**2)
         key = (self.cells.tobytes(), scn.n_uavs, geom.width_m, geom.height_m, scn.rotor, scn.slot_s)
         if key != self._program_key:
+            from dswm.methods.jtoratc.sca import TrajectoryProgram
+
             self.program = TrajectoryProgram(cells=self.cells, n_uavs=scn.n_uavs, width_m=geom.width_m,
                                              height_m=geom.height_m, rotor=scn.rotor, slot_s=scn.slot_s,
                                              weights=(o.w_delay, o.w_energy), solver=o.solver)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torchrl.modules import MultiAgentMLP
 
 N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
@@ -96,6 +95,9 @@ class SharedActor(nn.Module):
         super().__init__()
         self.n_agents = n_agents
         self.index = nn.Embedding(n_agents, embed)
+        # torchrl is imported here, not with the module: reading MADDPG's settings (every workflow parse) needs none
+        from torchrl.modules import MultiAgentMLP
+
         common = dict(n_agents=n_agents, centralised=False, share_params=True, activation_class=nn.ReLU)
         self.body = MultiAgentMLP(n_agent_inputs=obs_dim + embed, n_agent_outputs=hidden, depth=depth - 1,
                                   num_cells=hidden, activate_last_layer=True, **common)
