@@ -107,7 +107,7 @@ def test_a_failing_job_ends_failed_and_a_killed_one_is_marked_killed(store, tmp_
     assert client.get_run(run.run_id).info.status == "FAILED"
     # a run left RUNNING (job killed with SIGKILL) is closed as KILLED when the job runs again
     exp = info["experiment_id"]
-    stale = client.create_run(exp, tags={"job_key": "evaluate/milan/static/seed0"})
+    stale = client.create_run(exp, tags={"job_key": "evaluate/milan/static/seed0", "workdir": tracking.workdir_tag()})
     with open_job(cfg, tmp_path):
         pass
     assert client.get_run(stale.info.run_id).info.status == "KILLED"
@@ -158,14 +158,18 @@ def test_a_sigterm_as_the_run_is_created_ends_it_failed(store, tmp_path, monkeyp
 def test_a_workflow_start_closes_runs_a_sigkill_left_running(store, tmp_path):
     cfg, info, client = store
     exp = info["experiment_id"]
-    orphans = [client.create_run(exp, tags={"job_key": f"train/milan/dswm/seed{s}"}) for s in (0, 1)]
+    here = tracking.workdir_tag()
+    orphans = [client.create_run(exp, tags={"job_key": f"train/milan/dswm/seed{s}", "workdir": here}) for s in (0, 1)]
+    # a run of another working directory sharing the store (a tracking server) belongs to a live workflow there
+    elsewhere = client.create_run(exp, tags={"job_key": "train/milan/dswm/seed0", "workdir": "/other/checkout"})
     with open_job(cfg, tmp_path):
         pass
-    assert tracking.close_orphans(store=cfg["store"], experiment=cfg["experiment"]) == 2
+    assert tracking.close_orphans(mlflow_cfg=cfg) == 2
     assert [client.get_run(r.info.run_id).info.status for r in orphans] == ["KILLED", "KILLED"]
+    assert client.get_run(elsewhere.info.run_id).info.status == "RUNNING"
     assert [r.info.status for r in runs(client, info, "FINISHED")] == ["FINISHED"]  # a finished run is kept
-    assert tracking.close_orphans(store=cfg["store"], experiment=cfg["experiment"]) == 0
-    assert tracking.close_orphans(store=str(tmp_path / "absent.db"), experiment="x") == 0
+    assert tracking.close_orphans(mlflow_cfg=cfg) == 0
+    assert tracking.close_orphans(mlflow_cfg={"store": str(tmp_path / "absent.db"), "experiment": "x"}) == 0
 
 
 def test_missing_store_is_reported_with_the_rule_that_creates_it(tmp_path):
@@ -178,3 +182,102 @@ def test_missing_store_is_reported_with_the_rule_that_creates_it(tmp_path):
 def test_flatten_gives_dotted_string_params():
     flat = tracking.flatten({"a": {"b": 1, "c": [1, 2], "d": {}}, "e": None})
     assert flat == {"a.b": "1", "a.c": "[1, 2]", "a.d": "{}", "e": "None"}
+
+
+def test_a_rerun_replaces_only_the_runs_of_its_own_working_directory(store, tmp_path):
+    """Two checkouts logging to one tracking server: a job's rerun in one leaves the other's finished run."""
+    cfg, info, client = store
+    other = client.create_run(info["experiment_id"], tags={"job_key": "evaluate/milan/static/seed0",
+                                                           "workdir": "/other/checkout"})
+    client.set_terminated(other.info.run_id, "FINISHED")
+    for _ in range(2):
+        with open_job(cfg, tmp_path) as run:
+            pass
+    finished = {r.info.run_id: r.data.tags["workdir"] for r in runs(client, info, "FINISHED")}
+    assert finished == {other.info.run_id: "/other/checkout", run.run_id: tracking.workdir_tag()}
+
+
+def test_a_tracking_failure_mid_job_keeps_the_result_files_and_names_them(store, tmp_path, monkeypatch):
+    """The store refuses the artifact upload: the job fails with the store and the call named, its run ends
+    FAILED, and the result files it wrote are copied where Snakemake's clean-up of a failed job cannot reach."""
+    from mlflow.exceptions import MlflowException
+
+    cfg, info, client = store
+    cfg = {**cfg, "unlogged": str(tmp_path / "unlogged")}
+    days = tmp_path / "out" / "days.parquet"
+    traj = tmp_path / "out" / "trajectory.npz"
+
+    def log_artifact(self, run_id, local_path, artifact_path=None):
+        raise MlflowException("503 Service Unavailable")
+
+    monkeypatch.setattr(MlflowClient, "log_artifact", log_artifact)
+    with pytest.raises(tracking.TrackingError) as err:
+        with open_job(cfg, tmp_path, keep=[days, traj]) as run:
+            days.parent.mkdir()
+            days.write_bytes(b"the day results")
+            run.log_artifact(days)
+    message = str(err.value)
+    kept = tmp_path / "unlogged" / "evaluate" / "milan" / "static" / "seed0"
+    assert "job evaluate/milan/static/seed0" in message and "log_artifact failed" in message
+    assert info["tracking_uri"] in message and "503 Service Unavailable" in message
+    assert f"kept in {kept}: days.parquet" in message
+    assert (kept / "days.parquet").read_bytes() == b"the day results" and not (kept / "trajectory.npz").exists()
+    assert client.get_run(run.run_id).info.status == "FAILED"
+
+
+class _Unavailable:
+    """An HTTP server on a loopback port that answers every request 503 and counts them."""
+
+    def __init__(self):
+        import http.server
+        import threading
+
+        hits = self.hits = []
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def _answer(self):
+                hits.append(self.path)
+                self.send_response(503)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            do_GET = do_POST = do_PATCH = do_DELETE = _answer
+
+            def log_message(self, *args):
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def unavailable():
+    server = _Unavailable()
+    yield server
+    server.close()
+
+
+def test_a_server_that_answers_503_is_retried_a_bounded_number_of_times_then_named(unavailable, tmp_path,
+                                                                                    monkeypatch):
+    for var in tracking.HTTP_ENV.values():
+        monkeypatch.delenv(var, raising=False)
+    cfg = {"tracking_uri": unavailable.url, "store": str(tmp_path / "unused.db"), "artifacts": str(tmp_path / "a"),
+           "experiment": "x", "batch_size": 10, "http": {"max_retries": 2, "backoff_factor": 0, "timeout_s": 5},
+           "unlogged": str(tmp_path / "unlogged")}
+    with pytest.raises(tracking.TrackingError) as err:
+        with open_job(cfg, tmp_path, keep=[tmp_path / "days.parquet"]):
+            raise AssertionError("the body must not run")
+    assert len(unavailable.hits) == 3  # one request and its 2 retries, then the job fails
+    message = str(err.value)
+    assert unavailable.url in message and "get_experiment_by_name failed" in message
+    assert "nothing was computed" in message and not (tmp_path / "unlogged").exists()
+    with pytest.raises(tracking.TrackingError, match=unavailable.url):
+        tracking.init_store(store=cfg["store"], artifacts=cfg["artifacts"], experiment="x",
+                            tracking_uri=unavailable.url, http={"max_retries": 0, "backoff_factor": 0, "timeout_s": 5})
+    assert len(unavailable.hits) == 4 and not (tmp_path / "unused.db").exists()

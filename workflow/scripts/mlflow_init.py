@@ -1,4 +1,5 @@
-"""Create the MLflow SQLite store and the experiment; write a marker every logging rule depends on."""
+"""Create the MLflow store (the SQLite file, or the experiment on the configured tracking server) and the experiment;
+write a marker every logging rule depends on."""
 import sys
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
@@ -8,6 +9,7 @@ from dswm.pipeline.tracking import init_store
 from dswm.settings import read_param
 
 job = read_param(snakemake.params.settings)  # noqa: F821
-info = init_store(store=job["store"], artifacts=job["artifacts"], experiment=job["experiment"])
+info = init_store(store=job["store"], artifacts=job["artifacts"], experiment=job["experiment"],
+                  tracking_uri=job.get("tracking_uri"), http=job.get("http"))
 print(f"MLflow experiment {info['experiment']!r} (id {info['experiment_id']}) in {info['tracking_uri']}", file=sys.stderr)
 write_json(snakemake.output.marker, info)  # noqa: F821

@@ -133,7 +133,8 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="train", dataset=dataset,
-                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
+                          keep=[p for p in (model_out, manifest_out, history_out) if p is not None]) as run:
         run.set_tags({"evaluated_as": ",".join(evaluated_as)})  # methods whose evaluations load this model
         log_demand_input(run, tensor_dir, dataset, "training")
         torch.manual_seed(seed)
@@ -260,7 +261,8 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="evaluate", dataset=dataset,
-                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+                          method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
+                          keep=[days_out, trajectory_out]) as run:
         log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
         record = load_source_model(run, ctrl, m, model=model, manifest=manifest)
@@ -369,13 +371,13 @@ from dswm.settings import scale_intensity  # noqa: E402
 
 
 def _variant_run(*, job: Mapping[str, Any], part: str, variant: str, dataset: str, method: str, seed: int,
-                 repo: str | Path):
+                 repo: str | Path, keep: Sequence[str | Path]):
     """The MLflow run of one extra job: tagged ``stage`` "extra", ``variant`` and ``extra_job`` (``part``: train or
     evaluate); its job key (``extra/<variant>/<part>/<dataset>/<method>/seed<seed>``) is its own, so a rerun
     replaces only its own earlier run."""
     return tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=f"extra/{variant}/{part}",
                             dataset=dataset, method=method, seed=seed, config_hash=stable_hash(job, length=12),
-                            repo=repo)
+                            repo=repo, keep=keep)
 
 
 def _variant_common(job: Mapping[str, Any], key: str, cls: type,
@@ -404,7 +406,7 @@ def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | P
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
     with _variant_run(job=job, part="train", variant=variant, dataset=dataset, method=method, seed=seed,
-                      repo=repo) as run:
+                      repo=repo, keep=[model_out, manifest_out]) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "train"})
         log_demand_input(run, tensor_dir, dataset, "training")
         torch.manual_seed(seed)
@@ -435,7 +437,7 @@ def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
     with _variant_run(job=job, part="evaluate", variant=variant, dataset=dataset, method=method, seed=seed,
-                      repo=repo) as run:
+                      repo=repo, keep=[days_out, trajectory_out]) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "evaluate"})
         log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)

@@ -1,17 +1,24 @@
-"""MLflow tracking of the workflow's jobs: one SQLite store, one experiment, one run per job.
+"""MLflow tracking of the workflow's jobs: one store, one experiment, one run per job.
 
-The store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every
-training or evaluation job then opens exactly one run with :func:`job_run`. A run is tagged with its job key
-(stage/dataset/method/seed), the profile, the git commit and the hash of its settings, and carries the settings
-slice it read as params. Metrics go out in batches (one SQLite round trip per batch instead of one per value). When a job is
-rerun, the previous FINISHED runs of the same job key are deleted once the new one finishes, so the UI never
-shows two finished runs of one job; a job that raises (or is terminated) ends its run FAILED. Tables never
-read MLflow: the result files are the source of truth.
+The store is the SQLite file ``mlflow.store`` on one machine, or, where ``mlflow.tracking_uri`` names one, an MLflow
+tracking server (on a cluster: PostgreSQL behind it, artifacts on the shared filesystem; docs/CLUSTER.md). The
+store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every training or
+evaluation job then opens exactly one run with :func:`job_run`. A run is tagged with its job key
+(stage/dataset/method/seed), the working directory it ran in, the profile, the git commit and the hash of its
+settings, and carries the settings slice it read as params. Metrics go out in batches (one round trip per batch
+instead of one per value). When a job is rerun, the previous FINISHED runs of the same job key and working
+directory are deleted once the new one finishes, so the UI never shows two finished runs of one job; a job that
+raises (or is terminated) ends its run FAILED. A server's HTTP errors (refused connections, 408, 429, 5xx) are
+retried with exponential backoff a bounded number of times (``mlflow.http``); a call that still fails raises
+:class:`TrackingError`, naming the server and the call, and the job's result files are kept (``mlflow.unlogged``)
+before the job fails. Tables never read MLflow: the result files are the source of truth.
 """
 from __future__ import annotations
 
 import contextlib
 import json
+import os
+import shutil
 import signal
 import threading
 import subprocess
@@ -28,21 +35,71 @@ MAX_PARAMS_PER_BATCH = 100
 MAX_PARAM_CHARS = 6000
 """MLflow's longest param value."""
 
+HTTP_ENV = {"max_retries": "MLFLOW_HTTP_REQUEST_MAX_RETRIES", "backoff_factor": "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR",
+            "timeout_s": "MLFLOW_HTTP_REQUEST_TIMEOUT"}
+"""``mlflow.http`` key -> the environment variable through which MLflow's REST client reads it. The client retries
+refused connections and the responses 408, 429, 500, 502, 503 and 504 with waits of backoff_factor x 1, 2, 4, ...
+seconds (each at most 120 s), at most max_retries times, each request waiting at most timeout_s."""
 
-def tracking_uri(store: str | Path) -> str:
+
+class TrackingError(RuntimeError):
+    """An MLflow call failed for good (after the bounded retries); the message names the store and the call."""
+
+
+def sqlite_uri(store: str | Path) -> str:
     """SQLAlchemy URI of the SQLite store at ``store`` (made absolute, so jobs agree from any cwd)."""
     return "sqlite:///" + str(Path(store).resolve())
 
 
+def tracking_uri(mlflow_cfg: Mapping[str, Any]) -> str:
+    """Where the runs of ``mlflow_cfg`` (the ``mlflow`` section) are logged: its ``tracking_uri`` (a tracking server)
+    when set, else the SQLite store ``store``."""
+    return mlflow_cfg.get("tracking_uri") or sqlite_uri(mlflow_cfg["store"])
+
+
+def uses_server(mlflow_cfg: Mapping[str, Any]) -> bool:
+    """True when ``mlflow_cfg`` names a tracking server instead of the SQLite store."""
+    return bool(mlflow_cfg.get("tracking_uri"))
+
+
+def configure_http(http: Mapping[str, Any] | None) -> None:
+    """Set MLflow's HTTP retry, backoff and timeout for this process from ``mlflow.http`` (:data:`HTTP_ENV`)."""
+    for key, var in HTTP_ENV.items():
+        if http and http.get(key) is not None:
+            os.environ[var] = str(int(http[key]))
+
+
+def client_for(mlflow_cfg: Mapping[str, Any]) -> MlflowClient:
+    """The MLflow client of ``mlflow_cfg``, with its HTTP retries configured (:func:`configure_http`)."""
+    configure_http(mlflow_cfg.get("http"))
+    return MlflowClient(tracking_uri=tracking_uri(mlflow_cfg))
+
+
+def _describe(fn) -> tuple[str, str]:
+    """(store, call) of an MLflow client method, for error messages."""
+    owner = getattr(fn, "__self__", None)
+    uri = getattr(owner, "_tracking_client", None)
+    uri = getattr(uri, "tracking_uri", None) or "the MLflow store"
+    return str(uri), getattr(fn, "__name__", "call")
+
+
 def _retry(fn, *args, attempts: int = 8, **kwargs):
-    """Call ``fn``, retrying while SQLite reports a lock held by a concurrent job (two jobs on two cores)."""
+    """Call ``fn``, retrying while SQLite reports a lock held by a concurrent job (two jobs on two cores).
+
+    A tracking server's transient HTTP errors are retried by MLflow's client itself (:data:`HTTP_ENV`). Any other
+    failure, or one that outlasts the retries, raises :class:`TrackingError` naming the store and the call.
+    """
     for i in range(attempts):
         try:
             return fn(*args, **kwargs)
+        except TrackingError:
+            raise
         except Exception as err:  # MLflow wraps SQLAlchemy's OperationalError in its own exception types
-            if "database is locked" not in str(err) or i == attempts - 1:
-                raise
-            time.sleep(0.2 * 2**i)
+            if "database is locked" in str(err) and i < attempts - 1:
+                time.sleep(0.2 * 2**i)
+                continue
+            uri, call = _describe(fn)
+            raise TrackingError(f"MLflow at {uri}: {call} failed: {type(err).__name__}: {err}") from err
     raise AssertionError("unreachable")
 
 
@@ -51,33 +108,49 @@ EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 the GenAI overview, whose traces page this project never fills)."""
 
 
-def init_store(*, store: str | Path, artifacts: str | Path, experiment: str) -> dict:
-    """Create the SQLite store and the experiment (idempotent), tag it :data:`EXPERIMENT_KIND`, and describe them.
+def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tracking_uri: str | None = None,
+               http: Mapping[str, Any] | None = None) -> dict:
+    """Create the store (the SQLite file, unless ``tracking_uri`` names a server) and the experiment (idempotent),
+    tag it :data:`EXPERIMENT_KIND`, and describe them.
 
     Args:
-        store: path of the SQLite file, e.g. results/mlflow.db.
-        artifacts: directory under which each run's artifacts are stored.
+        store: path of the SQLite file, e.g. results/mlflow.db (unused when ``tracking_uri`` is given).
+        artifacts: directory under which each run's artifacts are stored; with a server, a directory on the
+            filesystem every job shares: the experiment's artifact location, written by the jobs directly.
         experiment: experiment name.
+        tracking_uri: the tracking server's URL (``mlflow.tracking_uri``), or None for the SQLite store.
+        http: ``mlflow.http`` (retries, backoff and timeout of a server's requests).
 
     Returns:
         {"tracking_uri", "experiment", "experiment_id", "artifact_location"}.
+
+    Raises:
+        TrackingError: the server cannot be reached (after the retries), named with the call that failed.
     """
-    Path(store).parent.mkdir(parents=True, exist_ok=True)
+    cfg = {"store": str(store), "tracking_uri": tracking_uri, "http": http}
+    if not uses_server(cfg):
+        Path(store).parent.mkdir(parents=True, exist_ok=True)
     Path(artifacts).mkdir(parents=True, exist_ok=True)
-    client = MlflowClient(tracking_uri=tracking_uri(store))
-    found = client.get_experiment_by_name(experiment)
+    client = client_for(cfg)
+    found = _retry(client.get_experiment_by_name, experiment)
     location = Path(artifacts).resolve().as_uri()
     if found is None:
-        exp_id = client.create_experiment(experiment, artifact_location=location)
+        try:
+            exp_id = _retry(client.create_experiment, experiment, artifact_location=location)
+        except TrackingError:  # another workflow on the same server created it first
+            found = _retry(client.get_experiment_by_name, experiment)
+            if found is None:
+                raise
+            exp_id = found.experiment_id
     elif found.lifecycle_stage == "deleted":
-        client.restore_experiment(found.experiment_id)
+        _retry(client.restore_experiment, found.experiment_id)
         exp_id = found.experiment_id
     else:
         exp_id = found.experiment_id
-    client.set_experiment_tag(exp_id, *EXPERIMENT_KIND)
-    exp = client.get_experiment(exp_id)
-    return {"tracking_uri": tracking_uri(store), "experiment": experiment, "experiment_id": exp.experiment_id,
-            "artifact_location": exp.artifact_location}
+    _retry(client.set_experiment_tag, exp_id, *EXPERIMENT_KIND)
+    exp = _retry(client.get_experiment, exp_id)
+    return {"tracking_uri": tracking_uri or sqlite_uri(store), "experiment": experiment,
+            "experiment_id": exp.experiment_id, "artifact_location": exp.artifact_location}
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -158,14 +231,23 @@ class JobRun:
         _retry(self.client.log_inputs, self.run_id, datasets=[entry])
 
     def set_tags(self, tags: Mapping[str, Any]) -> None:
-        """Add tags to the run."""
-        for k, v in tags.items():
-            _retry(self.client.set_tag, self.run_id, k, str(v))
+        """Add tags to the run (one request)."""
+        from mlflow.entities import RunTag
+
+        _retry(self.client.log_batch, self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
 
-def _runs_of(client: MlflowClient, exp_id: str, key: str, status: str) -> list:
-    """Active runs of the experiment with job key ``key`` and the given status."""
-    query = f"tags.job_key = '{key}' and attributes.status = '{status}'"
+def workdir_tag() -> str:
+    """The ``workdir`` tag of a run: the working directory its job ran in (the workflow's root, absolute).
+
+    Snakemake's lock keeps two workflows out of one working directory, so a job key is unique within it; on a
+    tracking server that several workflows share, the tag keeps each workflow's reruns and orphans its own."""
+    return str(Path.cwd().resolve())
+
+
+def _runs_of(client: MlflowClient, exp_id: str, key: str, status: str, workdir: str) -> list:
+    """Active runs of the experiment with job key ``key``, working directory ``workdir`` and the given status."""
+    query = f"tags.job_key = '{key}' and tags.workdir = '{workdir}' and attributes.status = '{status}'"
     return _retry(client.search_runs, [exp_id], filter_string=query, max_results=1000)
 
 
@@ -173,36 +255,77 @@ class _Terminated(Exception):
     """Raised inside a job when Snakemake terminates it, so its run ends FAILED."""
 
 
+def _store_client(mlflow_cfg: Mapping[str, Any]) -> MlflowClient:
+    """:func:`client_for`, once the SQLite store is known to exist (a client would create an empty one)."""
+    if not uses_server(mlflow_cfg) and not Path(mlflow_cfg["store"]).exists():
+        raise FileNotFoundError(f"{mlflow_cfg['store']}: MLflow store missing; it is created by the mlflow_init rule "
+                                f"(run `snakemake --cores 1 --forcerun mlflow_init mlflow_init`)")
+    return client_for(mlflow_cfg)
+
+
+def _experiment(client: MlflowClient, mlflow_cfg: Mapping[str, Any]):
+    """The configured experiment, checked to exist (the mlflow_init rule creates it)."""
+    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
+    if exp is None:
+        raise LookupError(f"{tracking_uri(mlflow_cfg)}: experiment {mlflow_cfg['experiment']!r} missing; the "
+                          f"mlflow_init rule creates it")
+    return exp
+
+
+def keep_unlogged(paths: Sequence[str | Path], keep_dir: str | Path) -> list[Path]:
+    """Copy the files of ``paths`` that exist into ``keep_dir`` (atomically, each under its own name); returns the
+    copies. A job whose tracking failed calls it before it fails, since Snakemake deletes a failed job's outputs."""
+    kept = []
+    for path in map(Path, paths):
+        if not path.is_file():
+            continue
+        dest = Path(keep_dir) / path.name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(f".{dest.name}.tmp")
+        shutil.copy2(path, tmp)
+        os.replace(tmp, dest)
+        kept.append(dest)
+    return kept
+
+
 @contextlib.contextmanager
 def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage: str, dataset: str,
-            method: str, seed: int, config_hash: str, repo: str | Path = ".") -> Iterator[JobRun]:
+            method: str, seed: int, config_hash: str, repo: str | Path = ".",
+            keep: Sequence[str | Path] = ()) -> Iterator[JobRun]:
     """Open the one MLflow run of a job; end it FINISHED, or FAILED if the body raises or is terminated.
 
     Args:
-        mlflow_cfg: the ``mlflow`` section (store, artifacts, experiment, batch_size).
+        mlflow_cfg: the ``mlflow`` section (tracking_uri or store, artifacts, experiment, batch_size, http,
+            unlogged).
         settings: the settings slice the job read (plain form), logged as params.
         stage: "train" or "evaluate".
         dataset, method, seed: the job's wildcards.
         config_hash: hash of that slice (tag).
         repo: the repository, for the git commit tag.
+        keep: the job's result files. When a tracking call fails for good (:class:`TrackingError`), those
+            already written are copied to ``<mlflow.unlogged>/<job key>/`` before the job fails, and the error
+            names them: Snakemake deletes a failed job's outputs, the copies stay.
 
     Yields:
         The :class:`JobRun`.
+
+    Raises:
+        TrackingError: a tracking call failed after its retries; the message names the store, the call, the job
+            and the kept files.
     """
-    store = Path(mlflow_cfg["store"])
-    if not store.exists():
-        raise FileNotFoundError(f"{store}: MLflow store missing; it is created by the mlflow_init rule "
-                                f"(run `snakemake --cores 1 --forcerun mlflow_init mlflow_init`)")
-    client = MlflowClient(tracking_uri=tracking_uri(store))
-    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
-    if exp is None:
-        raise LookupError(f"{store}: experiment {mlflow_cfg['experiment']!r} missing; the mlflow_init rule creates it")
+    client = _store_client(mlflow_cfg)
     key = f"{stage}/{dataset}/{method}/seed{seed}"
-    for stale in _runs_of(client, exp.experiment_id, key, "RUNNING"):  # left behind by a killed job
-        _retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
+    try:
+        exp = _experiment(client, mlflow_cfg)
+        workdir = workdir_tag()
+        for stale in _runs_of(client, exp.experiment_id, key, "RUNNING", workdir):  # left behind by a killed job
+            _retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
+    except TrackingError as err:
+        raise TrackingError(f"job {key}: {err}; nothing was computed, run the job again once the tracking store "
+                            f"answers") from err
     tags = {"job_key": key, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
-            "profile": settings["profile"], "git_commit": git_commit(repo), "config_hash": config_hash,
-            "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
+            "workdir": workdir, "profile": settings["profile"], "git_commit": git_commit(repo),
+            "config_hash": config_hash, "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
 
     # The handlers are in place before the run exists. While the run is created and its id bound, a SIGTERM or
     # SIGINT is only noted, and raised once the job holds the id, inside the `try` below, which ends the run
@@ -234,36 +357,44 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
             _retry(client.log_batch, job.run_id, params=params[i: i + MAX_PARAMS_PER_BATCH])
         yield job
         job.flush()
-    except BaseException:
+        _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FINISHED))
+    except BaseException as err:
         if job is not None:
             with contextlib.suppress(Exception):
                 job.flush()
-            _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FAILED))
+            with contextlib.suppress(Exception):  # the store may be the thing that failed
+                _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FAILED))
+        if isinstance(err, TrackingError):
+            keep_dir = Path(mlflow_cfg.get("unlogged") or "results/unlogged") / key
+            kept = keep_unlogged(keep, keep_dir)
+            what = (f"its result files are kept in {keep_dir}: {', '.join(p.name for p in kept)}" if kept else
+                    "no result file had been written yet")
+            raise TrackingError(f"job {key}: {err}; the job fails, {what}") from err
         raise
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    _retry(client.set_terminated, job.run_id, RunStatus.to_string(RunStatus.FINISHED))
-    for old in _runs_of(client, exp.experiment_id, key, "FINISHED"):
+    for old in _runs_of(client, exp.experiment_id, key, "FINISHED", workdir):
         if old.info.run_id != job.run_id:
             _retry(client.delete_run, old.info.run_id)
 
 
-
-def close_orphans(*, store: str | Path, experiment: str) -> int:
-    """End every run of the experiment still marked RUNNING as KILLED; returns how many.
+def close_orphans(*, mlflow_cfg: Mapping[str, Any], workdir: str | None = None) -> int:
+    """End every run of this working directory (``workdir``, default :func:`workdir_tag`) still marked RUNNING as
+    KILLED; returns how many.
 
     Called when a workflow starts (Snakefile `onstart`): Snakemake's lock guarantees no job of this working
-    directory runs then, so a RUNNING run can only be one whose job was killed with SIGKILL (or lost its machine).
-    Nothing happens when the store does not exist yet.
+    directory runs then, so such a run can only be one whose job was killed with SIGKILL (or lost its machine).
+    Runs of other working directories on a shared tracking server are left alone. Nothing happens when the SQLite
+    store does not exist yet.
     """
-    if not Path(store).exists():
+    if not uses_server(mlflow_cfg) and not Path(mlflow_cfg["store"]).exists():
         return 0
-    client = MlflowClient(tracking_uri=tracking_uri(store))
-    exp = _retry(client.get_experiment_by_name, experiment)
+    client = client_for(mlflow_cfg)
+    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
     if exp is None:
         return 0
-    query = "attributes.status = 'RUNNING'"
+    query = f"attributes.status = 'RUNNING' and tags.workdir = '{workdir or workdir_tag()}'"
     runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=10000)
     for run in runs:
         _retry(client.set_terminated, run.info.run_id, RunStatus.to_string(RunStatus.KILLED))
@@ -273,19 +404,18 @@ def close_orphans(*, store: str | Path, experiment: str) -> int:
 def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path], stage: str | Sequence[str],
                    datasets: Sequence[str] | None = None, methods: Sequence[str] | None = None,
                    profile: str | None = None, artifact_path: str = "figures") -> int:
-    """Log the figure files ``paths`` as artifacts (under ``artifact_path``) of every FINISHED run they concern:
-    the runs of ``stage`` (one or several), restricted to ``datasets``, ``methods`` and ``profile`` where given.
+    """Log the figure files ``paths`` as artifacts (under ``artifact_path``) of every FINISHED run of this working
+    directory they concern: the runs of ``stage`` (one or several), restricted to ``datasets``, ``methods`` and
+    ``profile`` where given.
 
     A figure is drawn after the runs it shows have ended; MLflow keeps a run's artifact store open after that, so
     the figure lands beside the run's result files. Returns how many runs received the files.
     """
-    store = mlflow_cfg["store"]
-    client = MlflowClient(tracking_uri=tracking_uri(store))
-    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
-    if exp is None:
-        raise LookupError(f"{store}: experiment {mlflow_cfg['experiment']!r} missing; the mlflow_init rule creates it")
+    client = _store_client(mlflow_cfg)
+    exp = _experiment(client, mlflow_cfg)
     stages = [stage] if isinstance(stage, str) else list(stage)
-    query = "attributes.status = 'FINISHED'"  # tags allow no IN; the stages are chosen below
+    # tags allow no IN; the stages are chosen below
+    query = f"attributes.status = 'FINISHED' and tags.workdir = '{workdir_tag()}'"
     if profile is not None:
         query += f" and tags.profile = '{profile}'"
     runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=50000)

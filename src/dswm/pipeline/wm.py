@@ -100,7 +100,8 @@ def wm_quality_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str 
     days = days_to_replay(main, build(EvalDayLimits, job["replay_days"], "figures.eval_days"), str(main_days))
     tensor = load(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=STAGE, dataset=dataset, method=m.name,
-                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo) as run:
+                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
+                          keep=[rmse_out, returns_out, maps_out]) as run:
         ctrl = registry.build(m.name, target=m.target, options=m.options, seed=seed, device=ev.device)
         record = model_record(method=m.name, source=m.training_source or m.name, model=model, manifest=manifest)
         ctrl.load(model)
