@@ -31,3 +31,14 @@ include: "workflow/rules/figures.smk"
 # `snakemake --cores 2` with no target runs `tables`. Its `default_target: True` sits in an included file, and
 # Snakemake restores the default target when an include returns, so it is set here in the main Snakefile.
 workflow.default_target = "tables"
+
+# Rules that only read result files and write small tables and figures run on the submitting machine when a
+# cluster executor sends the other jobs away (profiles/slurm); a local run is unchanged.
+workflow.localrules("tables", "build_tables", "figures", *[r.name for r in workflow.rules if r.name.startswith("figure_")])
+
+
+# A rule that `resources.rules` names must exist: a misspelled rule would silently keep the default resources.
+_unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules})
+if _unknown:
+    raise WorkflowError(f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule "
+                        f"of this workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})")

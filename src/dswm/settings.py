@@ -176,11 +176,25 @@ class SelectionSettings:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class MlflowHttp:
+    """config.yaml ``mlflow.http``: how a tracking server's transient HTTP errors are retried (bounded)."""
+
+    max_retries: int
+    backoff_factor: int
+    timeout_s: int
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MlflowSettings:
+    tracking_uri: str | None
+    """A tracking server's URL (``http://host:port``), or None for the SQLite ``store`` (one machine)."""
     store: str
     artifacts: str
     experiment: str
     batch_size: int
+    http: MlflowHttp
+    unlogged: str
+    """Where a job whose tracking failed keeps its result files (``<unlogged>/<job key>/``)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -278,6 +292,39 @@ def figures_settings(config: Mapping[str, Any], profile: str) -> FiguresSettings
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class JobResources:
+    """What one job of a rule asks a cluster scheduler for (SLURM's ``--mem`` and ``--time``)."""
+
+    mem_mb: int
+    """Memory in MB."""
+    runtime: int
+    """Wall-time limit in minutes."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ResourceSettings:
+    """config.yaml ``resources`` merged with ``resources.budgets.<profile>`` (profiles/slurm, docs/CLUSTER.md)."""
+
+    default: JobResources
+    """Every rule that ``rules`` does not list."""
+    rules: dict[str, JobResources]
+    gpu_slurm_extra: str
+    """sbatch options a training job on a GPU adds (a constraint, a QoS); its GPU itself is the ``gpu`` resource."""
+
+    def of(self, rule: str) -> JobResources:
+        """The resources of ``rule``'s jobs."""
+        return self.rules.get(rule, self.default)
+
+
+def resource_settings(config: Mapping[str, Any], profile: str) -> ResourceSettings:
+    """``resources`` of a validated config with the selected profile's ``resources.budgets`` entry merged in."""
+    section = dict(config["resources"])
+    budgets = section.pop("budgets") or {}
+    key = f"resources (with resources.budgets.{profile})" if profile in budgets else "resources"
+    return build(ResourceSettings, merge(section, budgets.get(profile)), key)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MethodSettings:
     """One method of ``methods.run``: its registration and its typed settings."""
 
@@ -333,6 +380,8 @@ class Settings:
     tables: TablesSettings
     figures: FiguresSettings | None = None
     """None in a job's slice that reads no figure setting (the audit's)."""
+    resources: ResourceSettings | None = None
+    """What each rule's jobs ask a cluster for; None in the audit's slice (where a job runs changes no result)."""
     datasets: DatasetsConfig
     display: Display | None
     """None in a job's slice: display settings travel beside it."""
@@ -439,6 +488,7 @@ def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
         mlflow=build(MlflowSettings, config["mlflow"], "mlflow"),
         tables=build(TablesSettings, config["tables"], "tables"),
         figures=figures_settings(config, profile),
+        resources=resource_settings(config, profile),
         datasets=build(DatasetsConfig, config["datasets"], "datasets"),
         display=display)
     if settings.tables.main_dataset not in settings.run.datasets:
@@ -577,6 +627,15 @@ def intensity_inputs(settings: Settings, record: str = CALIBRATION_RECORD) -> di
     return {"intensity": str(record)} if settings.scenario.calibrates else {}
 
 
+def needs_gpu(settings: Settings, method: str | None) -> bool:
+    """True when a job of ``method`` (None: a job without a method) runs torch on a CUDA device: its own ``device``
+    setting (the DSWM methods' ``dswm.device``) or ``evaluation.device`` (the environment's) says cuda."""
+    devices = [settings.evaluation.device]
+    if method is not None and method in settings.methods:
+        devices.append(getattr(settings.methods[method].options, "device", None) or "cpu")
+    return any(str(d).startswith("cuda") for d in devices)
+
+
 # ---- the slices each rule passes its job ----------------------------------------------------------------
 def param(obj: Any) -> str:
     """A rule's ``params`` value: ``obj`` in canonical JSON (equal settings give equal text)."""
@@ -648,7 +707,7 @@ def tables_slice(settings: Settings) -> dict:
 
 def audit_slice(settings: Settings) -> dict:
     """What the audit reads: every setting but the display ones and the selection's."""
-    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None))
+    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None, resources=None))
 
 
 def select_slice(settings: Settings) -> dict:

@@ -47,6 +47,9 @@ rule audit_report:
         "logs/audit/report.log",
     benchmark:
         "results/benchmarks/audit/report.tsv"
+    threads: 1
+    resources:
+        **job_resources("audit_report"),
     script:
         "../scripts/audit.py"
 
@@ -64,5 +67,8 @@ rule audit:
         md=rules.audit_report.output.md,
     log:
         "logs/audit/audit.log",
+    threads: 1
+    resources:
+        **job_resources("audit"),
     script:
         "../scripts/audit.py"

@@ -17,5 +17,8 @@ rule calibrate:
         "logs/calibrate.log",
     benchmark:
         "results/benchmarks/calibrate.tsv"
+    threads: 1
+    resources:
+        **job_resources("calibrate", method=""),
     script:
         "../scripts/calibrate.py"

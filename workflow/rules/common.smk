@@ -41,6 +41,20 @@ wildcard_constraints:
     seed=r"\d+",
 
 
+def job_resources(rule, method=None):
+    """``resources`` of ``rule``'s jobs for a cluster scheduler (config.yaml ``resources``, profiles/slurm): mem_mb
+    and runtime (minutes); for a job that runs torch also ``gpu`` (1 when its device is cuda) and ``slurm_extra``
+    (``resources.gpu_slurm_extra`` on a GPU). ``method`` is the method whose device the job uses: "{method}" for
+    the job's wildcard, a method's name, "" for evaluation.device alone, None for a job without torch work."""
+    r = SETTINGS.resources.of(rule)
+    out = {"mem_mb": r.mem_mb, "runtime": r.runtime}
+    if method is not None:
+        name = (lambda wc: wc.method) if method == "{method}" else (lambda wc: method or None)
+        out["gpu"] = lambda wc: int(S.needs_gpu(SETTINGS, name(wc)))
+        out["slurm_extra"] = lambda wc: SETTINGS.resources.gpu_slurm_extra if S.needs_gpu(SETTINGS, name(wc)) else ""
+    return out
+
+
 def learns(method):
     """True for methods trained by the `train` rule before evaluation."""
     return method in SETTINGS.methods and SETTINGS.methods[method].learns

@@ -22,5 +22,7 @@ rule evaluate:
     benchmark:
         "results/benchmarks/evaluate/{dataset}/{method}/seed{seed}.tsv"
     threads: 1
+    resources:
+        **job_resources("evaluate", method="{method}"),
     script:
         "../scripts/evaluate.py"

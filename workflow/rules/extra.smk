@@ -73,6 +73,8 @@ rule extra_train:
         variant=_pattern(EXTRA_VARIANTS),
         method=TRAINED_PATTERN,
     threads: 1
+    resources:
+        **job_resources("extra_train", method="{method}"),
     script:
         "../scripts/extra_train.py"
 
@@ -98,6 +100,8 @@ rule extra_evaluate:
     wildcard_constraints:
         variant=_pattern(EXTRA_VARIANTS),
     threads: 1
+    resources:
+        **job_resources("extra_evaluate", method="{method}"),
     script:
         "../scripts/extra_evaluate.py"
 
@@ -131,6 +135,9 @@ rule figure_ablation:
         "logs/figures/ablation.log",
     benchmark:
         "results/benchmarks/figures/ablation.tsv"
+    threads: 1
+    resources:
+        **job_resources("figure_ablation"),
     script:
         "../scripts/figure_ablation.py"
 
@@ -154,5 +161,8 @@ rule figure_scaling:
         "logs/figures/scaling.log",
     benchmark:
         "results/benchmarks/figures/scaling.tsv"
+    threads: 1
+    resources:
+        **job_resources("figure_scaling"),
     script:
         "../scripts/figure_scaling.py"

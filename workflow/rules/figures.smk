@@ -15,6 +15,9 @@ rule figure_main:
         settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/main.log",
+    threads: 1
+    resources:
+        **job_resources("figure_main"),
     script:
         "../scripts/figure_results.py"
 
@@ -31,6 +34,9 @@ rule figure_ood:
         settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/ood.log",
+    threads: 1
+    resources:
+        **job_resources("figure_ood"),
     script:
         "../scripts/figure_results.py"
 
@@ -47,6 +53,9 @@ rule figure_cross_dataset:
         settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/cross_dataset.log",
+    threads: 1
+    resources:
+        **job_resources("figure_cross_dataset"),
     script:
         "../scripts/figure_results.py"
 
@@ -60,6 +69,9 @@ rule figure_eda:
         settings=S.param(S.figures_slice(SETTINGS)),
     log:
         "logs/figures/eda.log",
+    threads: 1
+    resources:
+        **job_resources("figure_eda"),
     script:
         "../scripts/figure_results.py"
 
@@ -80,5 +92,8 @@ rule figures:
         md=rules.audit_report.output.md,
     log:
         "logs/audit/figures.log",
+    threads: 1
+    resources:
+        **job_resources("figures"),
     script:
         "../scripts/audit.py"

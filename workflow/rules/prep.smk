@@ -10,6 +10,9 @@ rule demo_raw:
         "logs/prep/demo_raw_{dataset}.log",
     benchmark:
         "results/benchmarks/prep/demo_raw_{dataset}.tsv"
+    threads: 1
+    resources:
+        **job_resources("demo_raw"),
     script:
         "../scripts/demo_raw.py"
 
@@ -27,6 +30,9 @@ rule prepare:
         "logs/prep/prepare_{dataset}.log",
     benchmark:
         "results/benchmarks/prep/prepare_{dataset}.tsv"
+    threads: 1
+    resources:
+        **job_resources("prepare"),
     script:
         "../scripts/prep_prepare.py"
 
@@ -42,5 +48,8 @@ rule eda:
         settings=S.param(S.eda_slice(SETTINGS)),
     log:
         "logs/prep/eda_{dataset}.log",
+    threads: 1
+    resources:
+        **job_resources("eda"),
     script:
         "../scripts/eda.py"

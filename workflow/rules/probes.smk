@@ -38,6 +38,8 @@ rule probe:
     wildcard_constraints:
         method="|".join(PROBE_METHODS) or "(?!)",
     threads: 1
+    resources:
+        **job_resources("probe", method="{method}"),
     script:
         "../scripts/probe.py"
 
@@ -59,5 +61,8 @@ rule figure_sample_efficiency:
         "logs/figures/sample_efficiency.log",
     benchmark:
         "results/benchmarks/figures/sample_efficiency.tsv"
+    threads: 1
+    resources:
+        **job_resources("figure_sample_efficiency"),
     script:
         "../scripts/figure_sample_efficiency.py"

@@ -17,5 +17,7 @@ rule select:
     benchmark:
         "results/benchmarks/select.tsv"
     threads: 1
+    resources:
+        **job_resources("select", method=SETTINGS.selection.planner_method),
     script:
         "../scripts/select.py"

@@ -25,6 +25,9 @@ rule build_tables:
         audit=S.param(AUDIT_IDENTITY),  # {"profile", "config_hash"} the report must carry
     log:
         "logs/tables.log",
+    threads: 1
+    resources:
+        **job_resources("build_tables"),
     script:
         "../scripts/tables.py"
 
@@ -47,5 +50,8 @@ rule tables:
         audit=S.param(AUDIT_IDENTITY),
     log:
         "logs/tables_check.log",
+    threads: 1
+    resources:
+        **job_resources("tables"),
     script:
         "../scripts/tables_check.py"

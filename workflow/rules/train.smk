@@ -27,5 +27,7 @@ rule train:
     wildcard_constraints:
         method=TRAINED_PATTERN,
     threads: 1
+    resources:
+        **job_resources("train", method="{method}"),
     script:
         "../scripts/train.py"

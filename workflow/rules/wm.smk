@@ -61,6 +61,8 @@ if WM_METHOD in TRAINED:
         benchmark:
             "results/benchmarks/wm_quality/{dataset}/seed{seed}.tsv"
         threads: 1
+        resources:
+            **job_resources("wm_quality", method=WM_METHOD),
         script:
             "../scripts/wm_quality.py"
 
@@ -82,6 +84,9 @@ if dswm_runs_on(WM_DATASET):
             "logs/figures/wm_quality.log",
         benchmark:
             "results/benchmarks/figures/wm_quality.tsv"
+        threads: 1
+        resources:
+            **job_resources("figure_wm_quality"),
         script:
             "../scripts/figure_wm_quality.py"
 
@@ -105,6 +110,9 @@ if _TRAINING_DATASETS:
             "logs/figures/training.log",
         benchmark:
             "results/benchmarks/figures/training.tsv"
+        threads: 1
+        resources:
+            **job_resources("figure_training"),
         script:
             "../scripts/figure_training.py"
 
@@ -128,6 +136,9 @@ if dswm_runs_on("milan"):
             "logs/figures/qualitative_milan.log",
         benchmark:
             "results/benchmarks/figures/qualitative_milan.tsv"
+        threads: 1
+        resources:
+            **job_resources("figure_qualitative_milan"),
         script:
             "../scripts/figure_qualitative.py"
 
@@ -154,6 +165,9 @@ for _region in ("shanghai", "yjmob"):
                 f"logs/figures/qualitative_{_region}.log",
             benchmark:
                 f"results/benchmarks/figures/qualitative_{_region}.tsv"
+            threads: 1
+            resources:
+                **job_resources(f"figure_qualitative_{_region}"),
             script:
                 "../scripts/figure_qualitative.py"
 
@@ -180,5 +194,8 @@ if _TRAJECTORY_METHODS:
             "logs/figures/qualitative_trajectories.log",
         benchmark:
             "results/benchmarks/figures/qualitative_trajectories.tsv"
+        threads: 1
+        resources:
+            **job_resources("figure_qualitative_trajectories"),
         script:
             "../scripts/figure_qualitative.py"
