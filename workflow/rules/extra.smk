@@ -24,7 +24,7 @@ for _v, _m, _s in S.extra_jobs(SETTINGS):  # a do variant of a method without an
         raise WorkflowError(str(err)) from None
 
 
-def _pattern(names):
+def _alternatives(names):
     """A wildcard constraint matching exactly ``names`` (none: nothing)."""
     import re
 
@@ -70,7 +70,7 @@ rule extra_train:
     benchmark:
         "results/benchmarks/extra_train/{dataset}/{variant}/{method}/seed{seed}.tsv"
     wildcard_constraints:
-        variant=_pattern(EXTRA_VARIANTS),
+        variant=_alternatives(EXTRA_VARIANTS),
         method=TRAINED_PATTERN,
     threads: 1
     resources:
@@ -98,7 +98,7 @@ rule extra_evaluate:
     benchmark:
         "results/benchmarks/extra_evaluate/{dataset}/{variant}/{method}/seed{seed}.tsv"
     wildcard_constraints:
-        variant=_pattern(EXTRA_VARIANTS),
+        variant=_alternatives(EXTRA_VARIANTS),
     threads: 1
     resources:
         **job_resources("extra_evaluate", method="{method}"),
