@@ -17,6 +17,35 @@ LEARNING_BASELINES = {"ppo": "model-free RL", "sac": "model-free RL", "maddpg": 
 """The paper's learning baselines with their Table III class; each trains alone (no other method shares its model)."""
 
 
+def pytest_addoption(parser):
+    parser.addoption("--cluster", action="store_true",
+                     help="also run the tests marked `cluster`: the smoke DAG on a real SLURM and an MLflow server on "
+                          "PostgreSQL, started on loopback (install them first: tests/cluster/install.sh, as root)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `cluster` need engines that `tests/cluster/install.sh` installs as root: they are collected with
+    ``--cluster`` only, and a plain run says how many it left out."""
+    if config.getoption("--cluster"):
+        # last: they wait for the SLURM run that started with the session (cluster/background.py)
+        items.sort(key=lambda item: item.get_closest_marker("cluster") is not None)
+        return
+    left = [item for item in items if item.get_closest_marker("cluster")]
+    if left:
+        items[:] = [item for item in items if not item.get_closest_marker("cluster")]
+        config.hook.pytest_deselected(items=left)
+        config.stash[_CLUSTER_LEFT] = len(left)
+
+
+_CLUSTER_LEFT = pytest.StashKey[int]()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    left = config.stash.get(_CLUSTER_LEFT, 0)
+    if left:
+        terminalreporter.write_line(f"{left} cluster test(s) not run: they need SLURM, PostgreSQL and an MLflow server "
+                                    f"(as root: bash tests/cluster/install.sh, then pytest --cluster)", yellow=True)
+
 
 @pytest.fixture(autouse=True)
 def one_thread():
@@ -25,6 +54,29 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def slurm_smoke(request, tmp_path_factory):
+    """With ``--cluster``: the loopback engines and the smoke DAG on SLURM, started as the session starts so that
+    its jobs run beside the unit tests (cluster/background.py); the cluster tests read it. Otherwise None."""
+    if not request.config.getoption("--cluster"):
+        yield None
+        return
+    from cluster.background import SlurmSmokeRun
+
+    run = SlurmSmokeRun(root=tmp_path_factory.mktemp("slurm")).launch()
+    yield run
+    run.stop()
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory):
+    """A copy of the working tree where the smoke DAG has run: `tables calibrate`, then `figures` (the integration
+    tests check it; the cluster tests compare a SLURM run's tables with its own)."""
+    from smoke import copy_tree, run_smoke
+
+    return run_smoke(copy_tree(tmp_path_factory.mktemp("smoke") / "repo"))
 
 
 @pytest.fixture(scope="session")

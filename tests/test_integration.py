@@ -12,7 +12,6 @@ import csv
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -23,11 +22,11 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from conftest import LEARNING_BASELINES, ROOT
+from smoke import snakemake
 from dswm.config import load_yaml
 
 pytestmark = pytest.mark.integration
 
-SKIP = {".git", ".venv", "results", "logs", ".snakemake", "__pycache__", ".pytest_cache", ".hypothesis", "build"}
 DATASETS = ("milan", "shanghai", "yjmob")
 BASELINES = ("static", "greedy", "oracle")
 METHODS = tuple(load_yaml(ROOT / "config.yaml")["methods"]["run"])  # every configured method is tabulated
@@ -47,24 +46,10 @@ CONTRACT_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "e
                     "dataset"]  # docs/ARCHITECTURE.md, "Results"
 
 
-def snakemake(workdir, *args, timeout=1500):
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    exe = str(Path(sys.executable).parent / "snakemake")
-    return subprocess.run([exe, *args, "--config", "profile=smoke"], cwd=workdir, env=env, capture_output=True,
-                          text=True, timeout=timeout)
-
-
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    """A copy of the working tree where the smoke DAG has run (tables and calibrate)."""
-    work = tmp_path_factory.mktemp("smoke") / "repo"
-    shutil.copytree(ROOT, work, ignore=lambda d, names: [n for n in names if n in SKIP or
-                                                         (Path(d).name == "benchmarks" and n == "results")])
-    proc = snakemake(work, "tables", "calibrate", "--cores", "2")
-    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
-    proc = snakemake(work, "figures", "--cores", "2")
-    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
-    return work
+def run(smoke_run):
+    """The copy of the working tree where the smoke DAG has run (tables and calibrate, then figures)."""
+    return smoke_run
 
 
 def read_csv(path):

@@ -1,0 +1,173 @@
+"""The workflow on real cluster engines, started on loopback (tests/cluster/engines.py): the smoke DAG through
+Snakemake's SLURM executor (`--executor slurm --profile profiles/slurm --jobs 4`), logging to an MLflow tracking
+server whose backend store is PostgreSQL, against the local smoke run of the integration tests; and 8 processes
+logging to that server at once.
+
+Collected with ``pytest --cluster`` only; the engines must be installed first (``tests/cluster/install.sh``, as root),
+and a missing one fails the tests by name. The engines and the SLURM run start with the session (conftest.slurm_smoke,
+cluster/background.py), so that its jobs use the core the unit tests leave idle; these tests run last. The measurements of the SLURM run (jobs, wall time, core-hours, against
+the local run) are printed in the summary and written to ``results/cluster_run.json`` of its tree.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from smoke import TIMING
+
+pytestmark = pytest.mark.cluster
+
+SUBMITTED = re.compile(r"Job (\d+) has been submitted with SLURM jobid (\d+)")
+TRACKED = ("train", "evaluate")
+"""The smoke DAG's rules whose jobs are MLflow runs (the `tables calibrate` targets)."""
+
+
+@pytest.fixture(scope="module")
+def engines(slurm_smoke):
+    """The loopback engines that the session started with the SLURM run (conftest.slurm_smoke)."""
+    if slurm_smoke.error is not None:
+        pytest.fail(f"the cluster engines or the SLURM run did not start:\n{slurm_smoke.error}")
+    return slurm_smoke.engines
+
+
+def job_stats(text: str) -> dict[str, int]:
+    """{rule: job count} of the "Job stats" table Snakemake prints first."""
+    table = text.split("Job stats", 1)[1].split("total", 1)[0]
+    return {rule: int(n) for rule, n in re.findall(r"^(\w+)\s+(\d+)$", table, flags=re.M)}
+
+
+def sacct(ids) -> list[dict]:
+    """sacct's record of the SLURM jobs ``ids`` (allocations only, not steps)."""
+    fields = ["JobID", "JobName", "State", "ExitCode", "ElapsedRaw", "AllocCPUS", "CPUTimeRAW"]
+    out = subprocess.run(["sacct", "-X", "-P", "-n", "-o", ",".join(fields), "-j", ",".join(map(str, ids))],
+                         capture_output=True, text=True, check=True).stdout
+    return [dict(zip(fields, line.split("|"))) for line in out.splitlines() if line.strip()]
+
+
+def local_core_hours(work: Path) -> float:
+    """Core-hours of the local smoke run's `tables calibrate` jobs: the wall seconds of every job that has a
+    benchmark file (each runs on one core), less those of the `figures` target."""
+    seconds = 0.0
+    for tsv in (work / "results" / "benchmarks").rglob("*.tsv"):
+        part = tsv.relative_to(work / "results" / "benchmarks").parts[0]
+        if part in ("extra_train", "extra_evaluate", "probe", "wm", "figures"):
+            continue
+        rows = tsv.read_text().splitlines()
+        seconds += float(rows[-1].split("\t")[0])
+    return seconds / 3600
+
+
+@pytest.fixture(scope="module")
+def slurm_run(engines, slurm_smoke, smoke_run, request):
+    """The smoke DAG's `tables calibrate` in a fresh copy of the tree, every job but the local rules sent to SLURM,
+    every run logged to the tracking server; started with the session (cluster/background.py), awaited here."""
+    rc, text, wall = slurm_smoke.wait(timeout=3600)
+    assert rc == 0, f"{' '.join(slurm_smoke.argv)} exited with {rc}:\n{text[-8000:]}"
+    work = slurm_smoke.work
+    submitted = dict(SUBMITTED.findall(text))
+    records = sacct(submitted.values())
+    local = json.loads((smoke_run / TIMING).read_text())
+    summary = {
+        "slurm": {"jobs": len(submitted), "local_rules_jobs": sum(job_stats(text).values()) - len(submitted),
+                  "wall_s": round(wall, 1),
+                  "core_hours": round(sum(int(r["CPUTimeRAW"]) for r in records) / 3600, 3),
+                  "beside": "the unit tests and the local smoke run, on the same 2 cores"},
+        "local": {"jobs": sum(job_stats(text).values()), "wall_s": local["tables"],
+                  "core_hours": round(local_core_hours(smoke_run), 3)},
+    }
+    (work / "results" / "cluster_run.json").write_text(json.dumps(summary, indent=2))
+    reporter = request.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.write_line(f"smoke DAG (tables calibrate) on SLURM: {summary}")
+    return {"work": work, "text": text, "submitted": submitted, "sacct": records, "summary": summary}
+
+
+def test_every_slurm_job_of_the_smoke_dag_completed(slurm_run):
+    text, records = slurm_run["text"], slurm_run["sacct"]
+    stats = job_stats(text)
+    local = {"tables", "build_tables"}  # the Snakefile's localrules among the targets' jobs
+    assert len(slurm_run["submitted"]) == sum(n for rule, n in stats.items() if rule not in local)
+    assert stats["evaluate"] == 44 and stats["train"] == 19  # every method of the smoke profile went through SLURM
+    assert sorted(r["JobID"] for r in records) == sorted(slurm_run["submitted"].values())
+    assert {(r["State"], r["ExitCode"]) for r in records} == {("COMPLETED", "0:0")}
+    assert {r["AllocCPUS"] for r in records} == {"1"}  # each job asked for its rule's one thread
+    assert len({r["JobName"] for r in records}) == 1  # one workflow's run id names them all
+
+
+def test_the_tables_equal_the_local_smoke_run_byte_for_byte(slurm_run, smoke_run):
+    names = sorted(p.name for p in (smoke_run / "results" / "tables").glob("*.csv"))
+    assert names == ["cross_dataset.csv", "milan_main.csv", "room.csv"]
+    for name in names:
+        assert (slurm_run["work"] / "results" / "tables" / name).read_bytes() == \
+            (smoke_run / "results" / "tables" / name).read_bytes(), name
+
+
+def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
+    client = MlflowClient(tracking_uri=engines.mlflow_uri)
+    exp = client.get_experiment_by_name("dswm")
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+    assert exp.artifact_location == (slurm_run["work"] / "results" / "mlartifacts").resolve().as_uri()
+    workdir = str(slurm_run["work"].resolve())
+    runs = client.search_runs([exp.experiment_id], filter_string=f"tags.workdir = '{workdir}'", max_results=1000)
+    keys = sorted(r.data.tags["job_key"] for r in runs)
+    stats = job_stats(slurm_run["text"])
+    assert len(keys) == sum(stats[rule] for rule in TRACKED) == 63
+    assert len(set(keys)) == len(keys)  # one run per job
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    evaluations = [r for r in runs if r.data.tags["stage"] == "evaluate"]
+    for r in evaluations:  # each carries its demand tensor and its result file
+        (entry,) = r.inputs.dataset_inputs
+        assert entry.dataset.name == r.data.tags["dataset"]
+    one = next(r for r in evaluations if r.data.tags["job_key"] == "evaluate/milan/greedy/seed0")
+    assert "days.parquet" in [a.path for a in client.list_artifacts(one.info.run_id)]
+    assert {"id/sr_mean", "ood/sr_mean"} <= set(one.data.metrics)
+
+
+def _writer(uri: str, experiment_id: str, index: int, barrier, out) -> None:
+    """One of the concurrent writers: a run with params, 20 batches of metrics, tags and an end."""
+    try:
+        from mlflow.entities import Metric, Param, RunTag
+
+        client = MlflowClient(tracking_uri=uri)
+        barrier.wait(timeout=60)
+        run = client.create_run(experiment_id, tags={"writer": str(index)})
+        client.log_batch(run.info.run_id, params=[Param(f"p{k}", str(k * index)) for k in range(50)])
+        for step in range(20):
+            now = int(time.time() * 1000)
+            client.log_batch(run.info.run_id, metrics=[Metric(f"m{k}", float(index + step + k), now, step)
+                                                       for k in range(25)],
+                             tags=[RunTag("step", str(step))])
+        client.set_terminated(run.info.run_id, "FINISHED")
+        out.put((index, run.info.run_id, None))
+    except Exception as err:  # reported to the test, which fails naming it
+        out.put((index, None, f"{type(err).__name__}: {err}"))
+
+
+def test_eight_concurrent_writers_to_the_postgresql_backed_server_all_complete(engines):
+    client = MlflowClient(tracking_uri=engines.mlflow_uri)
+    exp_id = client.create_experiment("concurrent-writers")
+    ctx = multiprocessing.get_context("spawn")
+    barrier, out = ctx.Barrier(8), ctx.Queue()
+    procs = [ctx.Process(target=_writer, args=(engines.mlflow_uri, exp_id, i, barrier, out)) for i in range(8)]
+    for p in procs:
+        p.start()
+    results = [out.get(timeout=300) for _ in procs]
+    for p in procs:
+        p.join(timeout=60)
+    errors = [(i, e) for i, _, e in results if e is not None]
+    assert errors == [] and [p.exitcode for p in procs] == [0] * 8
+    runs = client.search_runs([exp_id], max_results=100)
+    assert len(runs) == 8 and {r.info.status for r in runs} == {"FINISHED"}
+    for r in runs:
+        index = int(r.data.tags["writer"])
+        assert len(r.data.params) == 50 and r.data.params["p3"] == str(3 * index)
+        assert len(r.data.metrics) == 25 and r.data.tags["step"] == "19"
+        history = client.get_metric_history(r.info.run_id, "m0")
+        assert [m.value for m in sorted(history, key=lambda m: m.step)] == [float(index + s) for s in range(20)]
