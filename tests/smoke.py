@@ -23,12 +23,14 @@ def copy_tree(dest: Path) -> Path:
     return dest
 
 
-def command(*args, profile="smoke", env=None) -> tuple[list[str], dict]:
-    """The argv and environment of this environment's ``snakemake`` with ``args`` under the budget ``profile``."""
+def command(*args, profile="smoke", config=(), env=None) -> tuple[list[str], dict]:
+    """The argv and environment of this environment's ``snakemake`` with ``args`` under the budget ``profile``, plus
+    the ``config`` overrides (``key=value``; they go with the profile in ONE ``--config``: a second ``--config``
+    would replace the first)."""
     env = {**os.environ, **(env or {}),
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     exe = str(Path(sys.executable).parent / "snakemake")
-    return [exe, *args, "--config", f"profile={profile}"], env
+    return [exe, *args, "--config", f"profile={profile}", *config], env
 
 
 def snakemake(workdir, *args, timeout=1500, profile="smoke", env=None):

@@ -112,6 +112,7 @@ def test_the_tables_equal_the_local_smoke_run_byte_for_byte(slurm_run, smoke_run
 def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
     client = MlflowClient(tracking_uri=engines.mlflow_uri)
     exp = client.get_experiment_by_name("dswm")
+    assert exp is not None, f"no experiment 'dswm' on {engines.mlflow_uri}: the jobs did not log to the server"
     assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
     assert exp.artifact_location == (slurm_run["work"] / "results" / "mlartifacts").resolve().as_uri()
     workdir = str(slurm_run["work"].resolve())
