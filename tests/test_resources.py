@@ -1,0 +1,56 @@
+"""What each job asks a cluster scheduler for (config.yaml `resources`, workflow/rules/common.smk job_resources):
+per rule and budget profile, and one GPU for a torch job whose device is cuda (docs/CLUSTER.md)."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from dswm import settings as runconfig
+from dswm.config import load_yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def job_resources(text: str) -> dict[tuple[str, str], dict[str, str]]:
+    """{(rule, first output): {resource: value}} of every job a dry run printed."""
+    jobs = {}
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", text):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+        res = re.search(r"^\s+resources: (.+)$", block, flags=re.M)
+        if head and out and res:
+            jobs[(head.group(1), out.group(1))] = dict(kv.split("=", 1) for kv in res.group(1).split(", "))
+    return jobs
+
+
+def dry_run(*config: str) -> dict[tuple[str, str], dict[str, str]]:
+    targets = ["results/milan/dswm/seed0/days.parquet", "results/milan/greedy/seed0/days.parquet"]
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--forceall", "--nolock",
+                           "--cores", "2", *targets, "--config", "profile=smoke", *config], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return job_resources(proc.stdout + proc.stderr)
+
+
+def test_each_rule_asks_for_its_budgets_memory_and_time_and_a_gpu_only_on_cuda():
+    cfg = load_yaml(ROOT / "config.yaml")
+    smoke = runconfig.resource_settings(cfg, "smoke")
+    assert smoke.of("train").runtime == cfg["resources"]["budgets"]["smoke"]["rules"]["train"]["runtime"]
+    assert smoke.of("train").mem_mb == cfg["resources"]["rules"]["train"]["mem_mb"]  # unchanged keys are kept
+    assert smoke.of("no_such_rule") == runconfig.resource_settings(cfg, "smoke").default
+
+    cpu = dry_run()
+    train = cpu[("train", "results/milan/dswm/seed0/model.pt")]
+    assert (train["mem_mb"], train["runtime"], train["gpu"]) == (str(smoke.of("train").mem_mb),
+                                                                 str(smoke.of("train").runtime), "0")
+    assert cpu[("prepare", "results/data/milan/demand.parquet")]["mem_mb"] == str(smoke.of("prepare").mem_mb)
+
+    gpu = dry_run("dswm={device: cuda}", "resources={gpu_slurm_extra: '--constraint=a100'}")
+    assert gpu[("train", "results/milan/dswm/seed0/model.pt")]["gpu"] == "1"
+    assert gpu[("train", "results/milan/dswm/seed0/model.pt")]["slurm_extra"] == "--constraint=a100"
+    assert gpu[("evaluate", "results/milan/dswm/seed0/days.parquet")]["gpu"] == "1"
+    # Greedy runs on evaluation.device, still the CPU
+    assert gpu[("evaluate", "results/milan/greedy/seed0/days.parquet")]["gpu"] == "0"
+    assert gpu[("evaluate", "results/milan/greedy/seed0/days.parquet")].get("slurm_extra", "") == ""
