@@ -285,10 +285,16 @@ class FiguresSettings:
 
 def figures_settings(config: Mapping[str, Any], profile: str) -> FiguresSettings:
     """``figures`` of a validated config with the selected profile's ``figures.budgets`` entry merged in."""
-    section = dict(config["figures"])
+    return _budgeted(FiguresSettings, config, "figures", profile)
+
+
+def _budgeted(cls, config: Mapping[str, Any], name: str, profile: str):
+    """The top-level section ``name`` of a validated config with its ``budgets.<profile>`` entry merged in, built as
+    ``cls`` (an error names the section and the budget entry it came from)."""
+    section = dict(config[name])
     budgets = section.pop("budgets") or {}
-    key = f"figures (with figures.budgets.{profile})" if profile in budgets else "figures"
-    return build(FiguresSettings, merge(section, budgets.get(profile)), key)
+    key = f"{name} (with {name}.budgets.{profile})" if profile in budgets else name
+    return build(cls, merge(section, budgets.get(profile)), key)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -318,10 +324,7 @@ class ResourceSettings:
 
 def resource_settings(config: Mapping[str, Any], profile: str) -> ResourceSettings:
     """``resources`` of a validated config with the selected profile's ``resources.budgets`` entry merged in."""
-    section = dict(config["resources"])
-    budgets = section.pop("budgets") or {}
-    key = f"resources (with resources.budgets.{profile})" if profile in budgets else "resources"
-    return build(ResourceSettings, merge(section, budgets.get(profile)), key)
+    return _budgeted(ResourceSettings, config, "resources", profile)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
