@@ -30,6 +30,8 @@ from typing import Any, Iterator, Mapping, Sequence
 from mlflow.entities import Metric, Param, RunStatus
 from mlflow.tracking import MlflowClient
 
+from prep.atomic import atomic_path
+
 MAX_PARAMS_PER_BATCH = 100
 """MLflow refuses log_batch requests with more than 100 params."""
 MAX_PARAM_CHARS = 6000
@@ -280,10 +282,8 @@ def keep_unlogged(paths: Sequence[str | Path], keep_dir: str | Path) -> list[Pat
         if not path.is_file():
             continue
         dest = Path(keep_dir) / path.name
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(f".{dest.name}.tmp")
-        shutil.copy2(path, tmp)
-        os.replace(tmp, dest)
+        with atomic_path(dest) as tmp:
+            shutil.copy2(path, tmp)
         kept.append(dest)
     return kept
 
