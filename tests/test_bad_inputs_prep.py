@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
+import pyarrow as pa
 import pytest
 import yaml
 
@@ -260,6 +261,115 @@ def test_a_gz_holding_nothing_is_an_empty_file(tmp_path, raw):
     msg = _refused(_config(), "yjmob", [bad], tmp_path)
     assert msg == (f"{bad}: empty file (no data after gzip decompression); expected a header line with the columns "
                    f"{YJ_FIELDS}, then one line per record")
+
+
+# ---------------------------------------------------------------------------- null tokens are no numbers
+# A CSV reader's default null tokens (NA, NULL, nan, ...) would read such text in a count as a blank, then as a
+# zero: only a blank field is a blank; any other text that is no finite number stops preparation, named as written.
+
+
+def _with_line(path: Path, line: int, fields: dict[int, str]) -> Path:
+    """Rewrites 1-based `line` of a Milan day file with the given 0-based fields replaced."""
+    lines = path.read_text().splitlines(keepends=True)
+    parts = lines[line - 1].rstrip("\n").split("\t")
+    for k, v in fields.items():
+        parts[k] = v
+    lines[line - 1] = "\t".join(parts) + "\n"
+    path.write_text("".join(lines))
+    return path
+
+
+def test_a_nan_milan_count_is_refused_not_read_as_zero(tmp_path, raw):
+    for k in range(4):
+        _milan_day(raw, k)
+    assert _prepare(_config(), "milan", [raw], tmp_path / "ok", tmp_path)["dropped"] == {"duplicate_lines": 0}
+    bad = _with_line(raw / "sms-call-internet-mi-2013-11-02.txt", 100, {7: "nan"})  # the issue's case
+    msg = _refused(_config(), "milan", [raw], tmp_path)
+    assert msg == f"{bad}, line 100, column 'internet': expected a number, found 'nan'"
+
+
+@pytest.mark.parametrize("field, token, expected", [
+    (7, "NULL", "column 'internet': expected a number, found 'NULL'"),
+    (7, "NA", "column 'internet': expected a number, found 'NA'"),
+    (7, "-inf", "column 'internet': expected a number, found '-inf'"),
+    (3, "N/A", "column 'sms_in': expected a number, found 'N/A'"),
+    (0, "nan", "column 'square_id': expected an integer, found 'nan'"),  # the token, not "a blank field"
+    (1, "NaN", "column 'time_interval_ms': expected an integer, found 'NaN'"),
+    (2, "null", "column 'country_code': expected an integer, found 'null'"),
+])
+def test_a_null_token_in_any_milan_field_is_named(tmp_path, raw, field, token, expected):
+    for k in (0, 2, 3):
+        _milan_day(raw, k)
+    day = _with_line(_milan_day(raw, 1), 7, {field: token})
+    bad = raw / "sms-call-internet-mi-2013-11-02.txt.gz"
+    bad.write_bytes(gzip.compress(day.read_bytes()))  # the published files are read packed as well
+    day.unlink()
+    msg = _refused(_config(), "milan", [raw], tmp_path)
+    assert msg == f"{bad}, line 7, {expected}"
+
+
+def test_a_blank_milan_square_id_is_still_a_blank_field(tmp_path, raw):
+    for k in (0, 2, 3):
+        _milan_day(raw, k)
+    bad = _with_line(_milan_day(raw, 1), 3, {0: ""})
+    msg = _refused(_config(), "milan", [raw], tmp_path)
+    assert msg == f"{bad}, line 3, column 'square_id': expected a square id, found a blank field"
+
+
+@pytest.mark.parametrize("token, column, expected", [
+    ("nan", "x", "expected an integer, found 'nan'"),
+    ("NA", "uid", "expected an integer, found 'NA'"),
+    ("NULL", "d", "expected an integer, found 'NULL'"),
+])
+def test_a_null_token_in_a_yjmob_field_is_named(tmp_path, raw, token, column, expected):
+    path = _yjmob(raw, [0, 1, 2, 3])
+    lines = path.read_text().splitlines(keepends=True)
+    fields = lines[41].rstrip("\n").split(",")  # line 42 of the file (after the header)
+    fields["uid,d,t,x,y".split(",").index(column)] = token
+    lines[41] = ",".join(fields) + "\n"
+    path.write_text("".join(lines))
+    msg = _refused(_config(), "yjmob", [path], tmp_path)
+    assert msg == f"{path}, line 42, column {column!r}: {expected}"
+
+
+@pytest.mark.parametrize("form", ["xlsx", "csv"])
+@pytest.mark.parametrize("token", ["nan", "NULL", "inf"])
+def test_a_null_token_in_a_shanghai_coordinate_is_named_not_a_missing_location(tmp_path, raw, form, token):
+    rows = [tuple(str(v) if k in (4, 5) else v for k, v in enumerate(r))
+            for r in _sessions(["2014-06-14", "2014-06-15", "2014-06-16", "2014-06-17"])]
+    rows[30] = rows[30][:5] + (token,) + rows[30][6:]
+    table = pl.DataFrame(rows, schema=SH_COLUMNS, orient="row")
+    if form == "xlsx":
+        bad = raw / "data_6.1~6.15.xlsx"
+        _write_xlsx(bad, table)
+        where = f"{bad}, sheet 'Sheet1', row 32"
+    else:
+        bad = raw / "export.csv"
+        table.write_csv(bad)
+        where = f"{bad}, row 32"
+    msg = _refused(_config(), "shanghai", [bad], tmp_path)
+    assert msg == f"{where}, column 'longitude': expected a number, found {token!r}"
+
+
+def test_a_blank_shanghai_coordinate_is_still_a_counted_missing_location(tmp_path, raw):
+    rows = _sessions(["2014-06-14", "2014-06-15", "2014-06-16", "2014-06-17"])
+    rows[30] = rows[30][:5] + (None,) + rows[30][6:]
+    meta = _prepare(_config(), "shanghai", [_workbook(raw / "data_6.1~6.15.xlsx", rows)], tmp_path / "out", tmp_path)
+    assert meta["dropped"]["missing_location"] == 1
+
+
+def test_a_nan_in_a_later_batch_is_located_on_its_line(tmp_path, monkeypatch):
+    from prep import rawio
+
+    monkeypatch.setattr(rawio, "BLOCK_BYTES", 256)  # many batches of a few lines each
+    path = tmp_path / "counts.csv"
+    path.write_text("id,count\n" + "".join(f"{i},{i}.5\n" for i in range(200)).replace("\n150,150.5\n",
+                                                                                         "\n150,nan\n"))
+    batches = rawio.iter_csv_batches(path, names=["id", "count"], types={"id": pa.int64(), "count": pa.float64()},
+                                     has_header=True)
+    with pytest.raises(PrepError) as err:
+        list(batches)
+    assert str(err.value) == f"{path}, line 152, column 'count': expected a number, found 'nan'"
 
 
 # ---------------------------------------------------------------------------- split and eval days, at parse time

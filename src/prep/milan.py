@@ -2,8 +2,9 @@
 
 Raw format: daily `sms-call-internet-mi-YYYY-MM-DD.txt` (or .txt.gz), tab-separated, no header, 8 fields:
 square id, time interval (ms since the epoch, UTC, start of a 10-minute slot), country code, sms-in, sms-out,
-call-in, call-out, internet. A blank field means no activity. One square and slot has one line per country
-code. Demand = internet summed over country codes per square and slot; days and slots are local time. One
+call-in, call-out, internet. A blank field means no activity; any other text that is not a finite number
+(``nan``, ``NA``, ``NULL``, ``inf``, ...) is an error naming the file, line, column and text. One square and slot
+has one line per country code. Demand = internet summed over country codes per square and slot; days and slots are local time. One
 file per date; exact duplicate lines are dropped and counted; every configured day must have a line in the
 crop unless ``allow_empty_days`` lists it.
 """
@@ -30,9 +31,10 @@ log = logging.getLogger(__name__)
 
 COLUMNS = ("square_id", "time_interval_ms", "country_code", "sms_in", "sms_out", "call_in", "call_out",
            "internet")
-_TYPES = {"square_id": pa.int64(), "time_interval_ms": pa.int64(), "internet": pa.float64()}
-# Every field is read, the ones not summed as text, so that exact duplicate lines can be told apart.
-_READ_TYPES = {c: _TYPES.get(c, pa.string()) for c in COLUMNS}
+# Every field is read and checked as a number (so that exact duplicate lines can be told apart, and no field holds
+# text such as nan or NULL); only internet is summed.
+_READ_TYPES = {c: pa.int64() if c in ("square_id", "time_interval_ms", "country_code") else pa.float64()
+               for c in COLUMNS}
 _DATE_IN_NAME = re.compile(r"(\d{4}-\d{2}-\d{2})")
 SLOT_MS = 600_000
 
@@ -63,13 +65,14 @@ def read_raw(paths: Sequence[Path | str], squares: Sequence[int] | None = None, 
         on_out_of_range: "error" (default) or "drop" for square ids outside the grid and times outside
             every range.
         dropped: if given, counts of dropped lines by reason are added to it: ``duplicate_lines`` (exact
-            duplicates of an earlier line of the same file, all 8 fields equal, among the kept squares; always
-            present) and, in "drop" mode, the out-of-range reasons.
+            duplicates of an earlier line of the same file, all 8 fields equal by value, among the kept squares;
+            always present) and, in "drop" mode, the out-of-range reasons.
     Returns:
         DataFrame (square_id int64, time_interval_ms int64, internet float64), one row per square and slot
         present in the files, sorted; squares whose lines all have a blank internet field get 0.
     Raises:
-        PrepError: naming the file and line for a bad field, negative count, id or time out of range.
+        PrepError: naming the file and line for a bad field (text that is no finite number, nan and NULL
+            included), negative count, id or time out of range.
     """
     counts = dropped if dropped is not None else {}
     counts.setdefault("duplicate_lines", 0)

@@ -109,7 +109,10 @@ def iter_csv_batches(path: Path, *, names: Sequence[str], types: dict[str, pa.Da
     read = pacsv.ReadOptions(column_names=column_names, skip_rows=1 if has_header else 0,
                              block_size=BLOCK_BYTES, use_threads=True)
     parse = pacsv.ParseOptions(delimiter=delimiter)
-    conv = pacsv.ConvertOptions(column_types=types, include_columns=list(types))
+    # Only a blank field is null: pyarrow's default null tokens (NA, NULL, nan, N/A, ...) would turn such text
+    # in a numeric column into a blank (a zero once summed), silently.
+    conv = pacsv.ConvertOptions(column_types=types, include_columns=list(types), null_values=[""])
+    floats = [c for c, t in types.items() if pa.types.is_floating(t)]
     line = 2 if has_header else 1
     try:
         with _open_stream(path) as stream:
@@ -117,6 +120,11 @@ def iter_csv_batches(path: Path, *, names: Sequence[str], types: dict[str, pa.Da
             for batch in reader:
                 df = pl.from_arrow(batch)
                 assert isinstance(df, pl.DataFrame)
+                for col in floats:  # the float parser reads nan and inf as numbers: no count is either
+                    i = first_bad(~df[col].is_finite().fill_null(True))
+                    if i is not None:
+                        raise _not_a_number(path, line + i, col, str(df[col][i]), column_names=column_names,
+                                            types=types, has_header=has_header, delimiter=delimiter)
                 yield line, df
                 line += batch.num_rows
     except (pa.ArrowInvalid, OSError, EOFError) as exc:
@@ -169,20 +177,36 @@ def _explain(path: Path, exc: Exception, *, column_names, types, has_header, del
         located = locate_bad_value(path, column_names=column_names, types=types, has_header=has_header,
                                    delimiter=delimiter)
         if located is not None:
-            return PrepError(f"{path}, line {located[0]}, column {located[1]!r}: expected a number, "
+            return PrepError(f"{path}, line {located[0]}, column {located[1]!r}: {_expected(types[located[1]])}, "
                              f"found {located[2]!r}")
     return PrepError(f"{path}: {msg}")
+
+
+def _expected(typ: pa.DataType) -> str:
+    return "expected an integer" if pa.types.is_integer(typ) else "expected a number"
+
+
+def _not_a_number(path: Path, line: int, col: str, value: str, **read) -> PrepError:
+    """A non-finite float (text such as nan, NaN, inf): names the text as written in the file."""
+    located = locate_bad_value(path, **read)
+    if located is not None:
+        line, col, value = located
+    return PrepError(f"{path}, line {line}, column {col!r}: {_expected(read['types'][col])}, found {value!r}")
 
 
 def locate_bad_value(path: Path, *, column_names, types, has_header, delimiter) -> tuple[int, str, str] | None:
     """Second, diagnostic pass (only after a failure): finds the first non-numeric value of a numeric column.
 
+    A blank field is no bad value (the readers decide what a blank means); any other text that is not a finite
+    number of the column's type is, null tokens such as NA, NULL or nan included.
+
     Returns:
-        (line number, column name, offending text), or None if nothing is found.
+        (line number, column name, offending text as written), or None if nothing is found.
     """
     read = pacsv.ReadOptions(column_names=column_names, skip_rows=1 if has_header else 0,
                              block_size=BLOCK_BYTES)
-    conv = pacsv.ConvertOptions(column_types={n: pa.string() for n in types}, include_columns=list(types))
+    numeric = {n: t for n, t in types.items() if pa.types.is_integer(t) or pa.types.is_floating(t)}
+    conv = pacsv.ConvertOptions(column_types={n: pa.string() for n in numeric}, include_columns=list(numeric))
     line = 2 if has_header else 1
     try:
         with _open_stream(path) as stream:
@@ -190,13 +214,16 @@ def locate_bad_value(path: Path, *, column_names, types, has_header, delimiter) 
                                     parse_options=pacsv.ParseOptions(delimiter=delimiter), convert_options=conv)
             for batch in reader:
                 df = pl.from_arrow(batch)
-                for col, typ in types.items():
-                    target = pl.Float64 if pa.types.is_floating(typ) else pl.Int64
+                first: tuple[int, str, str] | None = None  # the earliest bad line of the batch, any column
+                for col, typ in numeric.items():
                     s = df[col]
-                    bad = s.is_not_null() & (s.str.strip_chars() != "") & s.cast(target, strict=False).is_null()
-                    if bad.any():
-                        i = int(np.argmax(bad.to_numpy()))
-                        return line + i, col, str(s[i])
+                    value = s.cast(pl.Float64 if pa.types.is_floating(typ) else pl.Int64, strict=False)
+                    number = value.is_finite() if pa.types.is_floating(typ) else value.is_not_null()
+                    i = first_bad(s.is_not_null() & (s.str.strip_chars() != "") & ~number.fill_null(False))
+                    if i is not None and (first is None or line + i < first[0]):
+                        first = (line + i, col, str(s[i]))
+                if first is not None:
+                    return first
                 line += batch.num_rows
     except (pa.ArrowInvalid, OSError, EOFError):
         return None

@@ -1,7 +1,9 @@
 """Shanghai Telecom: raw reader (half-month .xlsx files or CSV exports) and crop tensor builder.
 
 Raw format: columns month, date, start time, end time, latitude, longitude, user id; times
-`%Y-%m-%d %H:%M:%S` (local time) or Excel date cells. Rows with a missing or 0/0 location and sessions that
+`%Y-%m-%d %H:%M:%S` (local time) or Excel date cells. A coordinate is a finite number or a blank cell (a missing
+location); other text (`nan`, `NA`, `NULL`, ...) is an error naming the file, row and text. Rows with a missing
+(blank) or 0/0 location and sessions that
 end before they start are real: they are dropped and counted, as are exact duplicate rows (one source per
 session, across files). Sessions crossing midnight are kept and counted at their start. Every configured day
 must have a session unless ``allow_empty_days`` lists it. Demand = session starts per 470 m cell and 10-min
@@ -117,7 +119,9 @@ def iter_sessions(paths: Sequence[Path | str], *, dropped: dict[str, int] | None
                 raw = df[name]
                 val = raw.str.strip_chars().cast(pl.Float64, strict=False)
                 blank = raw.is_null() | (raw.str.strip_chars() == "")
-                i = first_bad(val.is_null() & ~blank)
+                # Only a blank cell is a missing location: text such as nan, NA or NULL is no number (a cast
+                # reads nan and inf as floats, so the check is on finite values).
+                i = first_bad(~val.is_finite().fill_null(False) & ~blank)
                 if i is not None:
                     raise PrepError(f"{where}, row {row0 + i}, column {name!r}: expected a number, found {raw[i]!r}")
                 coords[name] = val
