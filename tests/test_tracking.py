@@ -281,3 +281,82 @@ def test_a_server_that_answers_503_is_retried_a_bounded_number_of_times_then_nam
         tracking.init_store(store=cfg["store"], artifacts=cfg["artifacts"], experiment="x",
                             tracking_uri=unavailable.url, http={"max_retries": 0, "backoff_factor": 0, "timeout_s": 5})
     assert len(unavailable.hits) == 4 and not (tmp_path / "unused.db").exists()
+
+
+# ---------------------------------------------------------------------------- a tree copied with its store
+
+TREE_CFG = {"store": "results/mlflow.db", "artifacts": "results/mlartifacts", "experiment": "dswm", "batch_size": 10}
+
+
+def _files(root):
+    """{relative path: bytes} of every file under ``root``."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _evaluate(tree, days: bytes):
+    """One evaluate job of the workflow in ``tree`` (its working directory): a result file logged as artifact."""
+    result = tree / "results" / "milan" / "static" / "seed0" / "days.parquet"
+    result.parent.mkdir(parents=True, exist_ok=True)
+    result.write_bytes(days)
+    with open_job(TREE_CFG, tree) as run:
+        run.log_metrics({"id/sr_mean": 0.7})
+        run.log_artifact(result)
+    return run
+
+
+def test_a_copied_tree_logs_into_itself_and_leaves_the_original_alone(tmp_path, monkeypatch):
+    """The issue's case: a complete tree copied like `cp -a`, a job rerun in the copy."""
+    import hashlib
+    import shutil
+
+    original, copy = tmp_path / "run", tmp_path / "run-copy"
+    original.mkdir()
+    monkeypatch.chdir(original)
+    tracking.init_store(store=TREE_CFG["store"], artifacts=TREE_CFG["artifacts"], experiment="dswm")
+    first = _evaluate(original, b"days of the original")
+    shutil.copytree(original, copy, symlinks=True)  # cp -a: links kept, file times and modes copied
+    before = _files(original / "results" / "mlartifacts")
+    store_sha = hashlib.sha256((original / "results" / "mlflow.db").read_bytes()).hexdigest()
+
+    monkeypatch.chdir(copy)
+    rerun = _evaluate(copy, b"days of the copy")
+
+    client = MlflowClient(tracking_uri=tracking.sqlite_uri(copy / "results" / "mlflow.db"))
+    exp = client.get_experiment_by_name("dswm")
+    assert exp.artifact_location == (copy / "results" / "mlartifacts").as_uri()
+    assert exp.tags[tracking.TREE_TAG] == str(copy)
+    assert (copy / "results" / "mlartifacts" / rerun.run_id / "artifacts" / "days.parquet").read_bytes() == \
+        b"days of the copy"
+    assert _files(original / "results" / "mlartifacts") == before  # nothing written into the original
+    assert hashlib.sha256((original / "results" / "mlflow.db").read_bytes()).hexdigest() == store_sha
+    # the copy's store shows one current run of the job: the inherited FINISHED run is replaced by the rerun
+    finished = client.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'")
+    assert [r.info.run_id for r in finished] == [rerun.run_id]
+    inherited = client.get_run(first.run_id)
+    assert inherited.info.lifecycle_stage == "deleted" and inherited.data.tags["workdir"] == str(copy)
+    assert inherited.info.artifact_uri == (copy / "results" / "mlartifacts" / first.run_id / "artifacts").as_uri()
+    # the original's store still names its own tree only
+    orig = MlflowClient(tracking_uri=tracking.sqlite_uri(original / "results" / "mlflow.db"))
+    assert orig.get_experiment_by_name("dswm").artifact_location == (original / "results" / "mlartifacts").as_uri()
+    assert [r.info.run_id for r in orig.search_runs([exp.experiment_id])] == [first.run_id]
+
+
+def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monkeypatch):
+    """`onstart`: the copy's store is made its own before any job; a second start finds nothing to do."""
+    import shutil
+
+    original, copy = tmp_path / "run", tmp_path / "run-copy"
+    original.mkdir()
+    monkeypatch.chdir(original)
+    tracking.init_store(store=TREE_CFG["store"], artifacts=TREE_CFG["artifacts"], experiment="dswm")
+    _evaluate(original, b"days")
+    assert tracking.start_workflow(TREE_CFG) == []  # the original is its store's tree
+    shutil.copytree(original, copy, symlinks=True)
+    monkeypatch.chdir(copy)
+    old, new = (original / "results" / "mlartifacts").as_uri(), (copy / "results" / "mlartifacts").as_uri()
+    assert tracking.start_workflow(TREE_CFG) == [
+        f"the store's artifacts now go under {new} (it named {old}); 1 run(s) of {original} (the tree it was "
+        f"copied from) are this tree's"]
+    assert tracking.start_workflow(TREE_CFG) == []
+    # a tracking server keeps its own artifact location: nothing of the store is touched
+    assert tracking.adopt_store({**TREE_CFG, "tracking_uri": "http://127.0.0.1:1"}) is None

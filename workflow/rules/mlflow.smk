@@ -19,10 +19,11 @@ rule mlflow_init:
 # (Snakemake's lock keeps two workflows out of one working directory): it is ended KILLED here, so the store never
 # shows a run as live that nothing is running. Runs of interrupted jobs that got SIGTERM or SIGINT are ended FAILED
 # by the job itself. On a shared tracking server, other working directories' runs are left alone.
+# Before that, a SQLite store copied or moved with its tree (`cp -a`) is made this tree's own: its artifact location
+# and the paths of its runs still name the tree it came from (dswm.pipeline.tracking.adopt_store).
 onstart:
     from dswm.config import to_plain
-    from dswm.pipeline.tracking import close_orphans
+    from dswm.pipeline.tracking import start_workflow
 
-    _closed = close_orphans(mlflow_cfg=to_plain(SETTINGS.mlflow))
-    if _closed:
-        print(f"MLflow: {_closed} run(s) left RUNNING by an earlier, killed workflow are now KILLED", file=sys.stderr)
+    for _line in start_workflow(to_plain(SETTINGS.mlflow)):
+        print(f"MLflow: {_line}", file=sys.stderr)

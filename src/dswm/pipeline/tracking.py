@@ -3,7 +3,9 @@
 The store is the SQLite file ``mlflow.store`` on one machine, or, where ``mlflow.tracking_uri`` names one, an MLflow
 tracking server (on a cluster: PostgreSQL behind it, artifacts on the shared filesystem; docs/CLUSTER.md). The
 store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every training or
-evaluation job then opens exactly one run with :func:`job_run`. A run is tagged with its job key
+evaluation job then opens exactly one run with :func:`job_run`. A SQLite store inside the tree belongs to that tree:
+after the tree is copied or moved, the store's absolute paths are made the copy's own (:func:`adopt_store`), so a
+job in the copy never writes into the tree it was copied from. A run is tagged with its job key
 (stage/dataset/method/seed), the working directory it ran in, the profile, the git commit and the hash of its
 settings, and carries the settings slice it read as params. Metrics go out in batches (one round trip per batch
 instead of one per value). When a job is rerun, the previous FINISHED runs of the same job key and working
@@ -20,6 +22,7 @@ import json
 import os
 import shutil
 import signal
+import sqlite3
 import threading
 import subprocess
 import time
@@ -150,9 +153,105 @@ def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tra
     else:
         exp_id = found.experiment_id
     _retry(client.set_experiment_tag, exp_id, *EXPERIMENT_KIND)
+    adopt_store({**cfg, "artifacts": str(artifacts), "experiment": experiment})  # a SQLite store copied with its tree
     exp = _retry(client.get_experiment, exp_id)
     return {"tracking_uri": tracking_uri or sqlite_uri(store), "experiment": experiment,
             "experiment_id": exp.experiment_id, "artifact_location": exp.artifact_location}
+
+
+TREE_TAG = "dswm.tree"
+"""Experiment tag of a SQLite store: the working directory (tree) whose store it is (:func:`adopt_store`)."""
+
+
+def _tree_root(location: str, artifacts: str | Path) -> str | None:
+    """The tree an artifact location ``file://<root>/<artifacts>`` lies in, for a relative ``artifacts``."""
+    rel = Path(artifacts)
+    if rel.is_absolute() or not location.startswith("file://"):
+        return None
+    path = Path(location[len("file://"):])
+    n = len(rel.parts)
+    return str(Path(*path.parts[:-n])) if n and path.parts[-n:] == rel.parts else None
+
+
+def _moved(text: str, old_root: str, new_root: str) -> str:
+    """``text`` with the file URI of ``old_root`` (and what lies under it) made that of ``new_root``."""
+    old, new = Path(old_root).as_uri(), Path(new_root).as_uri()
+    return new + text[len(old):] if text == old or text.startswith(old + "/") else text.replace(old + "/", new + "/")
+
+
+def adopt_store(mlflow_cfg: Mapping[str, Any], *, workdir: str | None = None) -> dict | None:
+    """Make the SQLite store of this tree this tree's own, after the tree was copied or moved (``cp -a``, ``mv``).
+
+    MLflow keeps absolute paths in the store: the experiment's artifact location (where every new run's artifacts
+    go), each run's artifact URI, the ``workdir`` tag of each run and the file URIs of its dataset inputs. In a copy
+    they still name the tree it was copied from, so without this a job in the copy would write its artifacts into
+    the original tree, and a rerun there would not replace the finished run it inherited. MLflow has no call that
+    changes an artifact location, so the store is updated in one SQLite transaction (``BEGIN IMMEDIATE``: a
+    concurrent job waits): the experiment's artifact location becomes this tree's ``mlflow.artifacts``, and every
+    path of the tree the store came from (its :data:`TREE_TAG`, or for a store without that tag the tree its
+    artifact location lies in) becomes the same path under this tree: the runs' artifacts (copied with the tree)
+    are then read from here, and a rerun here replaces the run the copy inherited (:func:`job_run`). The original
+    tree's store and files are never touched.
+
+    Only a SQLite store that lies inside ``workdir`` is adopted: with a tracking server (``mlflow.tracking_uri``)
+    artifacts go where the server says, and a store outside the tree may be shared with other trees. Called when a
+    workflow starts (Snakefile ``onstart``), by :func:`init_store` and by a job whose experiment still names
+    another tree; it does nothing when the store is already this tree's.
+
+    Args:
+        mlflow_cfg: the ``mlflow`` section (store, artifacts, experiment, tracking_uri).
+        workdir: the tree (default :func:`workdir_tag`, the working directory).
+
+    Returns:
+        None when nothing changed, else {"from": the tree it came from (or None), "runs": runs moved,
+        "artifact_location": [old, new]}.
+    """
+    if uses_server(mlflow_cfg):
+        return None
+    root = str(Path(workdir or workdir_tag()).resolve())
+    store = Path(mlflow_cfg["store"]).resolve()
+    if not store.is_file() or not store.is_relative_to(root):
+        return None
+    location = Path(mlflow_cfg["artifacts"]).resolve().as_uri()
+    with contextlib.closing(sqlite3.connect(store, timeout=60, isolation_level=None)) as db:
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            row = db.execute("SELECT experiment_id, artifact_location FROM experiments WHERE name = ?",
+                             (mlflow_cfg["experiment"],)).fetchone()
+            if row is None:
+                db.execute("ROLLBACK")
+                return None
+            exp_id, old_location = row
+            tag = db.execute("SELECT value FROM experiment_tags WHERE experiment_id = ? AND key = ?",
+                             (exp_id, TREE_TAG)).fetchone()
+            old_root = tag[0] if tag else _tree_root(old_location or "", mlflow_cfg["artifacts"])
+            if tag is not None and old_root == root and old_location == location:
+                db.execute("ROLLBACK")
+                return None
+            moved = 0
+            if old_root is not None and old_root != root:
+                runs = db.execute("SELECT run_uuid, artifact_uri FROM runs WHERE experiment_id = ?",
+                                  (exp_id,)).fetchall()
+                new_uris = [(_moved(uri, old_root, root), run) for run, uri in runs if uri]
+                db.executemany("UPDATE runs SET artifact_uri = ? WHERE run_uuid = ?", new_uris)
+                moved = db.execute("UPDATE tags SET value = ? WHERE key = 'workdir' AND value = ? AND run_uuid IN "
+                                   "(SELECT run_uuid FROM runs WHERE experiment_id = ?)",
+                                   (root, old_root, exp_id)).rowcount
+                sources = db.execute("SELECT dataset_uuid, dataset_source FROM datasets WHERE experiment_id = ?",
+                                     (exp_id,)).fetchall()
+                db.executemany("UPDATE datasets SET dataset_source = ? WHERE dataset_uuid = ?",
+                               [(_moved(src, old_root, root), uid) for uid, src in sources])
+            db.execute("UPDATE experiments SET artifact_location = ? WHERE experiment_id = ?", (location, exp_id))
+            db.execute("INSERT OR REPLACE INTO experiment_tags (key, value, experiment_id) VALUES (?, ?, ?)",
+                       (TREE_TAG, root, exp_id))
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+    if old_root in (None, root) and old_location == location:
+        return None  # only the tag was added: a store of this tree made before the tag existed
+    return {"from": old_root if old_root != root else None, "runs": moved,
+            "artifact_location": [old_location, location]}
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -318,6 +417,10 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     try:
         exp = _experiment(client, mlflow_cfg)
         workdir = workdir_tag()
+        if not uses_server(mlflow_cfg) and (exp.tags.get(TREE_TAG) != workdir or exp.artifact_location
+                                            != Path(mlflow_cfg["artifacts"]).resolve().as_uri()):
+            if adopt_store(mlflow_cfg, workdir=workdir) is not None:  # a store copied with its tree
+                exp = _experiment(client, mlflow_cfg)
         for stale in _runs_of(client, exp.experiment_id, key, "RUNNING", workdir):  # left behind by a killed job
             _retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     except TrackingError as err:
@@ -399,6 +502,23 @@ def close_orphans(*, mlflow_cfg: Mapping[str, Any], workdir: str | None = None) 
     for run in runs:
         _retry(client.set_terminated, run.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     return len(runs)
+
+
+def start_workflow(mlflow_cfg: Mapping[str, Any]) -> list[str]:
+    """What a workflow does with the store as it starts (Snakefile ``onstart``, before any job): adopt a SQLite store
+    copied or moved with its tree (:func:`adopt_store`), then close the runs a SIGKILL left RUNNING
+    (:func:`close_orphans`). Returns one line per thing done, for the log."""
+    lines = []
+    adopted = adopt_store(mlflow_cfg)
+    if adopted:
+        old, new = adopted["artifact_location"]
+        came = (f"; {adopted['runs']} run(s) of {adopted['from']} (the tree it was copied from) are this tree's"
+                if adopted["from"] else "")
+        lines.append(f"the store's artifacts now go under {new} (it named {old}){came}")
+    closed = close_orphans(mlflow_cfg=mlflow_cfg)
+    if closed:
+        lines.append(f"{closed} run(s) left RUNNING by an earlier, killed workflow are now KILLED")
+    return lines
 
 
 def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path], stage: str | Sequence[str],
