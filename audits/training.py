@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import shlex
 from pathlib import Path
 
 import polars as pl
@@ -325,8 +326,12 @@ def check_evaluated_models(ctx: AuditContext) -> Check:
         if found is None:
             chk.fail(f"{ctx.rel(mpath)}: missing; {where} records it as the model it evaluated")
         elif found != expected:
+            # The source's own model truncated or replaced: its train job writes it again.
+            rel = shlex.quote(ctx.rel(mpath))
+            fix = (f"; re-run its train job: `rm {rel}`, then the same snakemake command again (or add "
+                   f"`--forcerun {rel}` to it)" if mpath.resolve() == want_model.resolve() else "")
             chk.fail(f"{ctx.rel(mpath)}: SHA-256 is {found}, expected {expected} (model_sha256 of "
-                     f"{ctx.rel(want_manifest)}, which {where} names) — not the model {source} trained")
+                     f"{ctx.rel(want_manifest)}, which {where} names) — not the model {source} trained{fix}")
         chk.evidence[f"{ds}/{method}/seed{seed}"] = {"train_source": source, "model": ctx.rel(mpath),
                                                      "expected": expected, "loaded": loaded, "found": found}
     return chk

@@ -191,6 +191,21 @@ def test_evaluation_that_loaded_a_model_its_source_did_not_train(tree):
         f"results/milan/dswm/seed0/train_manifest.json, which {where} names) — not the model dswm trained"]
 
 
+def test_a_truncated_source_model_names_the_command_that_rebuilds_it(tree):
+    """The model file cut short after its evaluation, file time restored: the audit says how to recover."""
+    root, settings = tree
+    model = root / "results/milan/dswm/seed0/model.pt"
+    want, times = sha(model), os.stat(model)
+    model.write_bytes(model.read_bytes()[: model.stat().st_size // 2])
+    os.utime(model, ns=(times.st_atime_ns, times.st_mtime_ns))
+    chk = run(root, settings, training.check_evaluated_models)
+    assert chk.failures == [
+        f"results/milan/dswm/seed0/model.pt: SHA-256 is {sha(model)}, expected {want} (model_sha256 of "
+        f"results/milan/dswm/seed0/train_manifest.json, which results/milan/{m}/seed0/days.parquet names) — not the "
+        f"model dswm trained; re-run its train job: `rm results/milan/dswm/seed0/model.pt`, then the same snakemake "
+        f"command again (or add `--forcerun results/milan/dswm/seed0/model.pt` to it)" for m in ("dswm", "dswm_wo_unc")]
+
+
 def test_evaluation_record_naming_the_source_model_with_another_hash(tree):
     root, settings = tree
     other = hashlib.sha256(b"a model loaded before dswm's training ended").hexdigest()

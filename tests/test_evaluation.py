@@ -160,19 +160,28 @@ def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkey
     assert read_model_record(tmp_path / "bare.parquet") is None
 
 
-def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path):
+def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path, monkeypatch):
+    """A truncated model.pt: refused before it is loaded, with the command that has its train job write it again."""
+    import hashlib
     import json
+    from pathlib import Path
 
     from dswm.pipeline.jobs import model_record
 
-    (tmp_path / "model.pt").write_bytes(b"another model")
-    (tmp_path / "train_manifest.json").write_text(json.dumps({"model_sha256": "ab" * 32}))
+    monkeypatch.chdir(tmp_path)  # the workflow's root: the command names the model as Snakemake does
+    model = Path("results/milan/dswm/seed0/model.pt")
+    model.parent.mkdir(parents=True)
+    trained = b"the model dswm trained" * 100
+    model.write_bytes(trained[: len(trained) // 2])
+    manifest = model.parent / "train_manifest.json"
+    manifest.write_text(json.dumps({"model_sha256": hashlib.sha256(trained).hexdigest()}))
     with pytest.raises(ValueError) as err:
-        model_record(method="dswm_wo_unc", source="dswm", model=tmp_path / "model.pt",
-                     manifest=tmp_path / "train_manifest.json")
-    msg = str(err.value)
-    assert f"{tmp_path / 'model.pt'}: SHA-256 is " in msg and f"expected {'ab' * 32}" in msg
-    assert "train_manifest.json" in msg and "re-run the train job of dswm" in msg
+        model_record(method="dswm_wo_unc", source="dswm", model=tmp_path / model, manifest=manifest)
+    assert str(err.value) == (
+        f"{tmp_path / model}: SHA-256 is {hashlib.sha256(model.read_bytes()).hexdigest()}, expected "
+        f"{hashlib.sha256(trained).hexdigest()} (model_sha256 of {manifest}) — not the model dswm trained for "
+        f"dswm_wo_unc; re-run the train job of dswm: `rm results/milan/dswm/seed0/model.pt`, then the same snakemake "
+        f"command again (or add `--forcerun results/milan/dswm/seed0/model.pt` to it)")
 
 
 def test_days_file_carries_the_resolved_settings_and_search_of_its_method(tmp_path):

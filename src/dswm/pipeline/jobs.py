@@ -18,6 +18,7 @@ MLflow with exactly one run each.
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -230,9 +231,11 @@ def model_record(*, method: str, source: str | None = None, model: str | Path | 
     found = sha256_file(Path(model))
     with open(manifest, encoding="utf-8") as fh:
         want = json.load(fh).get("model_sha256")
-    if found != want:
+    if found != want:  # a truncated or replaced file; the train job that writes it rebuilds it
+        rel = shlex.quote(_workdir_relative(model))
         raise ValueError(f"{model}: SHA-256 is {found}, expected {want} (model_sha256 of {manifest}) — not the model "
-                         f"{source} trained for {method}; re-run the train job of {source}")
+                         f"{source} trained for {method}; re-run the train job of {source}: `rm {rel}`, then the same "
+                         f"snakemake command again (or add `--forcerun {rel}` to it)")
     return {"method": method, "train_source": source, "model": _workdir_relative(model), "model_sha256": found,
             "train_manifest": _workdir_relative(manifest)}
 
