@@ -305,11 +305,12 @@ def _evaluate(tree, days: bytes):
 
 
 def test_a_copied_tree_logs_into_itself_and_leaves_the_original_alone(tmp_path, monkeypatch):
-    """The issue's case: a complete tree copied like `cp -a`, a job rerun in the copy."""
+    """The issue's case: a complete tree copied like `cp -a`, a job rerun in the copy (paths with a space: file URIs
+    quote it)."""
     import hashlib
     import shutil
 
-    original, copy = tmp_path / "run", tmp_path / "run-copy"
+    original, copy = tmp_path / "a run", tmp_path / "a run-copy"
     original.mkdir()
     monkeypatch.chdir(original)
     tracking.init_store(store=TREE_CFG["store"], artifacts=TREE_CFG["artifacts"], experiment="dswm")
@@ -341,16 +342,22 @@ def test_a_copied_tree_logs_into_itself_and_leaves_the_original_alone(tmp_path, 
     assert [r.info.run_id for r in orig.search_runs([exp.experiment_id])] == [first.run_id]
 
 
-def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monkeypatch):
-    """`onstart`: the copy's store is made its own before any job; a second start finds nothing to do."""
+@pytest.mark.parametrize("tagged", [True, False], ids=["store", "store_made_before_the_tree_tag"])
+def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monkeypatch, tagged):
+    """`onstart`: the copy's store is made its own before any job; a second start finds nothing to do. A store
+    without the tree tag (made before it existed) is known by its artifact location."""
     import shutil
+    import sqlite3
 
-    original, copy = tmp_path / "run", tmp_path / "run-copy"
+    original, copy = tmp_path / "a run", tmp_path / "a run-copy"
     original.mkdir()
     monkeypatch.chdir(original)
     tracking.init_store(store=TREE_CFG["store"], artifacts=TREE_CFG["artifacts"], experiment="dswm")
     _evaluate(original, b"days")
     assert tracking.start_workflow(TREE_CFG) == []  # the original is its store's tree
+    if not tagged:
+        with sqlite3.connect(original / "results" / "mlflow.db") as db:
+            db.execute("DELETE FROM experiment_tags WHERE key = ?", (tracking.TREE_TAG,))
     shutil.copytree(original, copy, symlinks=True)
     monkeypatch.chdir(copy)
     old, new = (original / "results" / "mlartifacts").as_uri(), (copy / "results" / "mlartifacts").as_uri()
@@ -358,5 +365,8 @@ def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monke
         f"the store's artifacts now go under {new} (it named {old}); 1 run(s) of {original} (the tree it was "
         f"copied from) are this tree's"]
     assert tracking.start_workflow(TREE_CFG) == []
+    client = MlflowClient(tracking_uri=tracking.sqlite_uri(copy / "results" / "mlflow.db"))
+    (run,) = client.search_runs([client.get_experiment_by_name("dswm").experiment_id])
+    assert run.data.tags["workdir"] == str(copy) and run.info.artifact_uri.startswith(new + "/")
     # a tracking server keeps its own artifact location: nothing of the store is touched
     assert tracking.adopt_store({**TREE_CFG, "tracking_uri": "http://127.0.0.1:1"}) is None

@@ -29,6 +29,7 @@ import time
 import warnings
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
+from urllib.parse import unquote, urlparse
 
 from mlflow.entities import Metric, Param, RunStatus
 from mlflow.tracking import MlflowClient
@@ -168,7 +169,7 @@ def _tree_root(location: str, artifacts: str | Path) -> str | None:
     rel = Path(artifacts)
     if rel.is_absolute() or not location.startswith("file://"):
         return None
-    path = Path(location[len("file://"):])
+    path = Path(unquote(urlparse(location).path))
     n = len(rel.parts)
     return str(Path(*path.parts[:-n])) if n and path.parts[-n:] == rel.parts else None
 
