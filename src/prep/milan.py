@@ -4,9 +4,9 @@ Raw format: daily `sms-call-internet-mi-YYYY-MM-DD.txt` (or .txt.gz), tab-separa
 square id, time interval (ms since the epoch, UTC, start of a 10-minute slot), country code, sms-in, sms-out,
 call-in, call-out, internet. A blank field means no activity; any other text that is not a finite number
 (``nan``, ``NA``, ``NULL``, ``inf``, ...) is an error naming the file, line, column and text. One square and slot
-has one line per country code. Demand = internet summed over country codes per square and slot; days and slots are local time. One
-file per date; exact duplicate lines are dropped and counted; every configured day must have a line in the
-crop unless ``allow_empty_days`` lists it.
+has one line per country code. Demand = internet summed over country codes per square and slot; days and slots
+are local time. One file per date; exact duplicate lines are dropped and counted; every configured day must have
+a line in the crop unless ``allow_empty_days`` lists it.
 """
 from __future__ import annotations
 

@@ -2,9 +2,9 @@
 
 Raw format: `yjmob100k-dataset1.csv.gz` with header `uid,d,t,x,y`: user id, day 0..74, 30-minute slot
 0..47, cell x, y in 1..200 (500 m); x = y = 999 marks a masked record. Every field is an integer: a blank field
-or text (`nan`, `NA`, `NULL`, ...) is an error naming the file, line, column and text. Demand = number of distinct uids per
-cell and 30-minute slot, divided by 3 into its three 10-minute slots, in the densest 9 x 9 window by
-TRAINING total. Grid convention: tensor row = y - first_y, col = x - first_x; the dataset does not say
+or text (`nan`, `NA`, `NULL`, ...) is an error naming the file, line, column and text. Demand = number of
+distinct uids per cell and 30-minute slot, divided by 3 into its three 10-minute slots, in the densest 9 x 9
+window by TRAINING total. Grid convention: tensor row = y - first_y, col = x - first_x; the dataset does not say
 which way y grows, it is taken to grow northward (a mirror image changes no served ratio).
 """
 from __future__ import annotations
