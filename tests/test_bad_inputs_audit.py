@@ -220,6 +220,40 @@ def test_the_tables_target_removes_tables_built_before_a_result_file_changed(tre
                    f"tables refused: removed 3 table file(s) built before the change: {', '.join(tables)}"]
 
 
+def test_a_failed_rerun_that_deleted_a_tables_source_withdraws_the_tables(tree):
+    """A rerun of milan/greedy/seed0 whose job failed: Snakemake removed the job's outputs before running it and the
+    failed job left none, so the tables in place rest on files that are gone. The workflow's `onerror` handler
+    (workflow/rules/tables.smk: ``withdraw_tables`` of the gate's reasons) removes them; a failure that left every
+    source as audited keeps them."""
+    from dswm.pipeline.stale import withdraw_tables
+
+    root, settings = tree
+    assert audit(root) == 0
+    tables = [f"results/tables/{name}" for name in ("milan_main.csv", "cross_dataset.csv", "room.csv")]
+    for t in tables:
+        (root / t).parent.mkdir(parents=True, exist_ok=True)
+        (root / t).write_text("built from the audited tree\n")
+    assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # e.g. a figure job failed: the tables stay
+    assert all((root / t).is_file() for t in tables)
+    vouched = {p: sha(root / p) for p in (DAYS, TRAJ, RECORD)}
+    for p in vouched:
+        (root / p).unlink()
+    lines = withdraw_tables(tables, gate(REPORT, root=root))
+    assert not any((root / t).exists() for t in tables)
+    assert lines == [f"tables withdrawn: {p}: missing, but {REPORT} vouches for it (SHA-256 {vouched[p]}) — the "
+                     f"audited tree changed after the audit; {REDO.replace(' --config profile=smoke', '')}"
+                     for p in sorted(vouched, key=lambda p: gate_order(root, p))] + [
+        f"tables withdrawn: removed 3 table file(s) built from files that are no longer there as audited (run "
+        f"`snakemake --cores 2 tables` to build them again): {', '.join(tables)}"]
+    assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # nothing left to withdraw
+
+
+def gate_order(root: Path, path: str) -> int:
+    """The position of ``path`` among the files the report vouches for (the order of the gate's messages)."""
+    files = json.loads((root / REPORT).read_text())["read_only"]["files"]
+    return [f["path"] for f in files].index(path)
+
+
 @pytest.mark.parametrize("content, message", [
     (None, f"{RECORD}: missing — the evaluate job writes it last, with the SHA-256 of days.parquet and "
            f"trajectory.npz; without it no result file of milan/greedy/seed0 is proven unchanged since its "
