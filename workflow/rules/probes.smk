@@ -53,7 +53,7 @@ rule audit_probes:
         results=result_files(),  # the tables' sources, which no probe number may reach
     output:
         json=PROBE_AUDIT["json"],
-        md=report(PROBE_AUDIT["md"], caption="../report/audit.rst", category="Leakage audit",
+        md=report(PROBE_AUDIT["md"], caption="../report/audit_probes.rst", category="Leakage audit",
                   labels={"report": "probe audit"}),
     params:
         settings=AUDIT_SETTINGS,
