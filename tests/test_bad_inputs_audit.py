@@ -248,6 +248,44 @@ def test_a_failed_rerun_that_deleted_a_tables_source_withdraws_the_tables(tree):
     assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # nothing left to withdraw
 
 
+def workflow_onerror(root: Path) -> subprocess.CompletedProcess:
+    """Calls the Snakefile's `onerror` handler, as Snakemake does after a failed or interrupted workflow in `root`
+    (the workflow parsed there under the tree's own config, profile smoke)."""
+    (root / "config.yaml").write_text((root / "config.json").read_text())  # JSON is YAML
+    code = (f"from pathlib import Path\n"
+            f"from snakemake.api import SnakemakeApi\n"
+            f"from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings\n"
+            f"with SnakemakeApi(OutputSettings()) as api:\n"
+            f"    wf = api.workflow(snakefile=Path({str(ROOT / 'Snakefile')!r}), workdir=Path({str(root)!r}),\n"
+            f"                      resource_settings=ResourceSettings(cores=1),\n"
+            f"                      config_settings=ConfigSettings(config={{'profile': 'smoke'}}))\n"
+            f"    wf._workflow._onerror(None)\n")
+    return subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+
+
+def test_the_workflow_withdraws_the_tables_when_it_fails_after_deleting_their_source(tree):
+    """The handler above is the workflow's own: Snakemake's `onerror` call after a failed rerun removes the tables
+    whose source the rerun deleted, and keeps them while their sources are as audited."""
+    root, _ = tree
+    assert audit(root) == 0
+    tables = [f"results/tables/{name}" for name in ("milan_main.md", "milan_main.tex", "milan_main.csv",
+                                                     "cross_dataset.md", "cross_dataset.tex", "cross_dataset.csv",
+                                                     "room.csv")]
+    for t in tables:
+        (root / t).parent.mkdir(parents=True, exist_ok=True)
+        (root / t).write_text("built from the audited tree\n")
+    kept = workflow_onerror(root)
+    assert kept.returncode == 0, kept.stderr[-3000:]
+    assert "tables withdrawn" not in kept.stderr and all((root / t).is_file() for t in tables)
+    (root / DAYS).unlink()
+    gone = workflow_onerror(root)
+    assert gone.returncode == 0, gone.stderr[-3000:]
+    assert not any((root / t).exists() for t in tables)
+    assert f"tables withdrawn: {DAYS}: missing, but {REPORT} vouches for it" in gone.stderr
+    assert (f"tables withdrawn: removed 7 table file(s) built from files that are no longer there as audited (run "
+            f"`snakemake --cores 2 tables` to build them again): {', '.join(tables)}") in gone.stderr
+
+
 def gate_order(root: Path, path: str) -> int:
     """The position of ``path`` among the files the report vouches for (the order of the gate's messages)."""
     files = json.loads((root / REPORT).read_text())["read_only"]["files"]
