@@ -328,6 +328,8 @@ def test_a_store_made_before_the_figures_experiment_gets_it_and_loses_no_run(db,
         pass
     figures = client.get_experiment_by_name(cfg["experiment"] + "-figures")
     assert figures.artifact_location == (tmp_path / "mlartifacts").as_uri()
+    assert figures.tags["mlflow.experimentKind"] == "custom_model_development"
+    assert figures.tags["mlflow.note.content"].startswith("The runs behind the figures only")
     assert client.get_run(run.run_id).info.experiment_id == figures.experiment_id
     assert client.get_run(old.info.run_id).info.lifecycle_stage == "deleted"
     with open_job(cfg, tmp_path, stage="evaluate", method="dswm"):

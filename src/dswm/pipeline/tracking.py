@@ -144,19 +144,26 @@ def experiment_of(mlflow_cfg: Mapping[str, Any], kind: str) -> str:
     return main if kind == "main" else figures_experiment(main)
 
 
-def _ensure_experiment(client: MlflowClient, name: str, location: str) -> str:
-    """The id of the active experiment ``name``, created (artifacts under ``location``) or restored if needed."""
-    found = _retry(client.get_experiment_by_name, name)
+def _ensure_experiment(client: MlflowClient, experiment: str, part: str, location: str) -> str:
+    """The id of the active experiment ``part`` ("main" or "figures") of the main ``experiment``, created (artifacts
+    under ``location``) or restored if needed, tagged :data:`EXPERIMENT_KIND` and described
+    (:data:`EXPERIMENT_NOTES`)."""
+    names = {"main": experiment, "figures": figures_experiment(experiment)}
+    found = _retry(client.get_experiment_by_name, names[part])
     if found is None:
         try:
-            return _retry(client.create_experiment, name, artifact_location=location)
+            exp_id = _retry(client.create_experiment, names[part], artifact_location=location)
         except TrackingError:  # another workflow (or job) on the same store created it first
-            found = _retry(client.get_experiment_by_name, name)
+            found = _retry(client.get_experiment_by_name, names[part])
             if found is None:
                 raise
-    if found.lifecycle_stage == "deleted":
-        _retry(client.restore_experiment, found.experiment_id)
-    return found.experiment_id
+    if found is not None:
+        exp_id = found.experiment_id
+        if found.lifecycle_stage == "deleted":
+            _retry(client.restore_experiment, exp_id)
+    _retry(client.set_experiment_tag, exp_id, *EXPERIMENT_KIND)
+    _retry(client.set_experiment_tag, exp_id, "mlflow.note.content", EXPERIMENT_NOTES[part].format(**names))
+    return exp_id
 
 
 def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tracking_uri: str | None = None,
@@ -186,17 +193,11 @@ def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tra
     Path(artifacts).mkdir(parents=True, exist_ok=True)
     client = client_for(cfg)
     location = Path(artifacts).resolve().as_uri()
-    names = {"main": experiment, "figures": figures_experiment(experiment)}
-    ids = {}
-    for part, name in names.items():
-        ids[part] = _ensure_experiment(client, name, location)
-        _retry(client.set_experiment_tag, ids[part], *EXPERIMENT_KIND)
-        _retry(client.set_experiment_tag, ids[part], "mlflow.note.content",
-               EXPERIMENT_NOTES[part].format(main=names["main"], figures=names["figures"]))
+    ids = {part: _ensure_experiment(client, experiment, part, location) for part in EXPERIMENT_NOTES}
     exp = _retry(client.get_experiment, ids["main"])
     return {"tracking_uri": tracking_uri or sqlite_uri(store), "experiment": experiment,
             "experiment_id": exp.experiment_id, "artifact_location": exp.artifact_location,
-            "figures_experiment": names["figures"], "figures_experiment_id": ids["figures"]}
+            "figures_experiment": figures_experiment(experiment), "figures_experiment_id": ids["figures"]}
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
@@ -323,15 +324,14 @@ def _experiments(client: MlflowClient, mlflow_cfg: Mapping[str, Any], kind: str)
 
     The main experiment must exist (the mlflow_init rule creates it); the figures' experiment, which mlflow_init
     creates too, is created here when a store made before it lacks it (same artifact location as the main one)."""
+    target = experiment_of(mlflow_cfg, kind)
     main = _experiment(client, mlflow_cfg)
-    name = figures_experiment(mlflow_cfg["experiment"])
-    figures = _retry(client.get_experiment_by_name, name)
-    if kind != "main" and (figures is None or figures.lifecycle_stage == "deleted"):
-        fid = _ensure_experiment(client, name, main.artifact_location)
-        _retry(client.set_experiment_tag, fid, *EXPERIMENT_KIND)
+    figures = _retry(client.get_experiment_by_name, figures_experiment(main.name))
+    if target != main.name and (figures is None or figures.lifecycle_stage == "deleted"):
+        fid = _ensure_experiment(client, main.name, "figures", main.artifact_location)
     else:
         fid = figures.experiment_id if figures is not None else None
-    return (main.experiment_id if kind == "main" else fid), [i for i in (main.experiment_id, fid) if i is not None]
+    return (main.experiment_id if target == main.name else fid), [i for i in (main.experiment_id, fid) if i]
 
 
 def keep_unlogged(paths: Sequence[str | Path], keep_dir: str | Path) -> list[Path]:
