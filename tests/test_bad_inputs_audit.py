@@ -248,6 +248,32 @@ def test_a_failed_rerun_that_deleted_a_tables_source_withdraws_the_tables(tree):
     assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # nothing left to withdraw
 
 
+def test_the_figures_target_fails_on_a_probe_report_that_no_longer_vouches_for_the_files(tree):
+    """`snakemake figures` passes only while the probe audit's report passed and every file it vouches for (the
+    probe files, the tables' sources) is as audited; otherwise it names the file and the call that audits afresh."""
+    from audits.report import write_report
+    from audits.runner import run_audit
+
+    root, settings = tree
+    probes = "results/audit/probes.json"
+    write_report(run_audit(root=root, settings=settings, scope="probes"), json_path=root / probes,
+                 md_path=root / "results/audit/probes.md")
+
+    def figures_check() -> SystemExit | None:
+        return run_script("figures_check.py", SimpleNamespace(
+            log=[str(root / "logs" / "figures_check.log")], input=SimpleNamespace(report=probes),
+            params=SimpleNamespace(audit=param(report_identity(settings)))))
+
+    assert figures_check() is None
+    before = sha(root / DAYS)
+    edit_keeping_time(root / DAYS)
+    assert isinstance(figures_check(), SystemExit)
+    assert (root / "logs/figures_check.log").read_text().splitlines() == [
+        f"figures refused: {DAYS}: SHA-256 is {sha(root / DAYS)}, {probes} vouches for {before} — the file changed "
+        f"after the audit; delete {probes} and run `snakemake --cores 2 figures --config profile=smoke` to audit the "
+        f"tree afresh"]
+
+
 def workflow_onerror(root: Path) -> subprocess.CompletedProcess:
     """Calls the Snakefile's `onerror` handler, as Snakemake does after a failed or interrupted workflow in `root`
     (the workflow parsed there under the tree's own config, profile smoke)."""
