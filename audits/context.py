@@ -47,10 +47,15 @@ class AuditContext:
         root: the workflow's working directory (holds results/ and the raw data paths of the settings).
         settings: the run's settings (config.yaml plus any --config overrides, resolved once).
         ledger: the read ledger (one is created for `root` when omitted).
+        read_probes: whether the sample-efficiency probe's files are part of this audit. The workflow's main
+            report (the tables' gate) leaves them out, so its inputs are the tables' sources alone; the probe
+            report (`audit_probes`, run by `figures`) reads them.
     """
 
-    def __init__(self, *, root: Path | str, settings: Settings, ledger: ReadLedger | None = None):
+    def __init__(self, *, root: Path | str, settings: Settings, ledger: ReadLedger | None = None,
+                 read_probes: bool = True):
         self.root = Path(root).resolve()
+        self.read_probes = read_probes
         self.settings = settings
         self.profile = settings.profile
         self.datasets = list(settings.run.datasets)

@@ -23,12 +23,19 @@ from audits.protocol import _results
 from audits.report import Check
 
 
+PROBES_LEFT_OUT = ("the probe files are not read by this audit, whose inputs are the tables' sources alone: the "
+                   "probe audit (results/audit/probes.json, the `audit_probes` rule, run by `figures` and `audit`) "
+                   "compares their numbers with these sources")
+"""The evidence note of the check in an audit that leaves the probe files out (``AuditContext.read_probes``)."""
+
+
 def probe_files(ctx: AuditContext) -> list[Path]:
-    """Every probe file under results/probes/ (the probe rule's outputs; none in a run without probes)."""
+    """Every probe file under results/probes/ (the probe rule's outputs; none in a run without probes, and none
+    read by an audit that leaves them out: ``ctx.read_probes``)."""
     from dswm.protocol.probe import PROBE_DIR, PROBE_FILE
 
     base = ctx.root / PROBE_DIR
-    return sorted(base.rglob(PROBE_FILE)) if base.is_dir() else []
+    return sorted(base.rglob(PROBE_FILE)) if base.is_dir() and ctx.read_probes else []
 
 
 def _read(ctx: AuditContext, chk: Check, path: Path) -> pl.DataFrame | None:
@@ -112,7 +119,9 @@ def check_probes_out_of_tables(ctx: AuditContext) -> Check:
                     "table_sources": len(sources),
                     "rows_equal_to_their_evaluation": sorted(f"{p['where']} fraction {p['fraction']}"
                                                              for p in probes if p["own"])}
-    if not files:
+    if not ctx.read_probes:
+        chk.evidence["note"] = PROBES_LEFT_OUT
+    elif not files:
         chk.evidence["note"] = ("no probe file in this run (the sample-efficiency probe has not run): nothing to "
                                 "compare")
     return chk

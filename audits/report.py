@@ -83,7 +83,8 @@ def to_markdown(report: dict) -> str:
     """Human-readable report: verdict table, failures first, then the evidence of every check."""
     ok = "PASS" if report["passed"] else "FAIL"
     lines = [f"# Leakage audit: {ok}", "",
-             f"Profile `{report['profile']}`, datasets {', '.join(report['datasets'])}, methods "
+             f"Profile `{report['profile']}`, scope `{report.get('scope', 'all')}`, datasets "
+             f"{', '.join(report['datasets'])}, methods "
              f"{', '.join(report['methods'])}. Files read: {len(report['read_only']['files'])}, "
              f"changed by the audit: {len(report['read_only']['changed'])}.", "",
              "| family | check | verdict | claim |", "|---|---|---|---|"]

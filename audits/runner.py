@@ -45,6 +45,16 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 
+SCOPES: dict[str, tuple[list[Callable[[AuditContext], Check]], bool]] = {
+    "all": (CHECKS, True),
+    "tables": (CHECKS, False),
+    "probes": ([probes.check_probes_out_of_tables], True),
+}
+"""Audit scope -> (its checks, whether it reads the probe files). `all`: the whole audit in one report (`python -m
+audits`). The workflow splits it in two reports so that each rests on the files of its own target: `tables` (the
+`audit_report` rule, the tables' gate) runs every check over the tables' sources without the probe files, and
+`probes` (the `audit_probes` rule, which `figures` runs) compares the probe files with the tables' sources."""
+
 
 def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     """Runs one check; a check that crashes is a failed check (the audit never passes on an error)."""
@@ -62,27 +72,32 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
         return chk
 
 
-def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] | None = None) -> dict:
-    """Runs the whole audit on the tree under `root`.
+def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] | None = None,
+              scope: str = "all") -> dict:
+    """Runs the audit of `scope` on the tree under `root`.
 
     Args:
         root: the workflow's working directory (holds results/).
         settings: the settings the pipeline ran under (config.yaml plus overrides, resolved once).
         extra_reads: files read outside the checks (config.yaml) to include in the read-only proof.
+        scope: a key of :data:`SCOPES` (default: the whole audit).
     Returns:
         The report (see audits.report.build_report); report["passed"] is the verdict.
     """
     import torch
 
+    if scope not in SCOPES:
+        raise ValueError(f"audit scope {scope!r}: expected one of {', '.join(SCOPES)}")
+    checks_of_scope, read_probes = SCOPES[scope]
     torch.set_num_threads(settings.evaluation.torch_threads)  # as every evaluation job
     root = Path(root).resolve()
     ledger = ReadLedger(root=root, guarded=[root])
     for p in extra_reads or []:
         ledger.track(p)
-    ctx = AuditContext(root=root, settings=settings, ledger=ledger)
+    ctx = AuditContext(root=root, settings=settings, ledger=ledger, read_probes=read_probes)
     checks = []
     with ledger.guard():
-        for fn in CHECKS:
+        for fn in checks_of_scope:
             log.info("audit: %s", fn.__name__)
             chk = _run_one(fn, ctx)
             log.info("audit: %s %s", chk.id, "pass" if chk.passed else f"FAIL ({len(chk.failures)} findings)")
@@ -97,7 +112,7 @@ def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] |
         proof.fail(msg)
     proof.evidence = {"files_read": len(ro["files"]), "changed": len(ro["changed"])}
     checks.append(proof)
-    header = {**report_identity(settings), "datasets": ctx.datasets, "methods": ctx.methods,
+    header = {**report_identity(settings), "scope": scope, "datasets": ctx.datasets, "methods": ctx.methods,
               "settings_files": [ledger.rel(p) for p in extra_reads or []]}
     return build_report(checks=checks, read_only=ro, header=header)
 
@@ -116,7 +131,7 @@ def report_identity(settings: Settings) -> dict:
 
 
 def gate(report_json: Path | str, *, expect: Mapping[str, Any] | None = None,
-         root: Path | str | None = None) -> list[str]:
+         root: Path | str | None = None, target: str = "tables") -> list[str]:
     """Why a written report does not let tables be built (empty = it does).
 
     Args:
@@ -126,6 +141,8 @@ def gate(report_json: Path | str, *, expect: Mapping[str, Any] | None = None,
         root: the workflow's working directory; every file the report vouches for (`read_only.files`: `path`,
             `sha256_after`) must still hash to the value the audit took, the settings files aside (the
             config_hash vouches for the settings). Not checked when None.
+        target: the Snakemake target whose call audits the tree afresh (named in the messages): `tables` for the
+            main report, `figures` for the probe report.
     Returns:
         One message per reason, each naming the file and what to do. A report of another profile or other
         settings, or one that cannot be read, yields only that; a failed audit yields a summary, then each
@@ -133,7 +150,7 @@ def gate(report_json: Path | str, *, expect: Mapping[str, Any] | None = None,
     """
     where = str(report_json)
     profile = (expect or {}).get("profile")
-    cmd = "`snakemake --cores 2 tables" + (f" --config profile={profile}" if profile else "") + "`"
+    cmd = f"`snakemake --cores 2 {target}" + (f" --config profile={profile}" if profile else "") + "`"
     redo = f"delete {where} and run {cmd} to audit the tree afresh"
     try:
         with open(report_json, "r", encoding="utf-8") as fh:
@@ -163,7 +180,8 @@ def gate(report_json: Path | str, *, expect: Mapping[str, Any] | None = None,
     failing = [f"{c['id']}: {m}" for c in report["checks"] if not c["passed"] for m in c["failures"]]
     if not report["passed"] or failing:
         md = Path(where).with_suffix(".md")
-        return [f"{where}: the leakage audit failed ({len(failing)} finding(s)); no table is built from a "
+        what = "no table is built from" if target == "tables" else f"`{target}` does not pass on"
+        return [f"{where}: the leakage audit failed ({len(failing)} finding(s)); {what} a "
                 f"pipeline that fails it — fix each finding (below, and in {md}), then run {cmd}"] + failing
     return _vouched(report, where=where, root=Path(root), redo=redo) if root is not None else []
 

@@ -220,6 +220,104 @@ def test_the_tables_target_removes_tables_built_before_a_result_file_changed(tre
                    f"tables refused: removed 3 table file(s) built before the change: {', '.join(tables)}"]
 
 
+def test_a_failed_rerun_that_deleted_a_tables_source_withdraws_the_tables(tree):
+    """A rerun of milan/greedy/seed0 whose job failed: Snakemake removed the job's outputs before running it and the
+    failed job left none, so the tables in place rest on files that are gone. The workflow's `onerror` handler
+    (workflow/rules/tables.smk: ``withdraw_tables`` of the gate's reasons) removes them; a failure that left every
+    source as audited keeps them."""
+    from dswm.pipeline.stale import withdraw_tables
+
+    root, settings = tree
+    assert audit(root) == 0
+    tables = [f"results/tables/{name}" for name in ("milan_main.csv", "cross_dataset.csv", "room.csv")]
+    for t in tables:
+        (root / t).parent.mkdir(parents=True, exist_ok=True)
+        (root / t).write_text("built from the audited tree\n")
+    assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # e.g. a figure job failed: the tables stay
+    assert all((root / t).is_file() for t in tables)
+    vouched = {p: sha(root / p) for p in (DAYS, TRAJ, RECORD)}
+    for p in vouched:
+        (root / p).unlink()
+    lines = withdraw_tables(tables, gate(REPORT, root=root))
+    assert not any((root / t).exists() for t in tables)
+    assert lines == [f"tables withdrawn: {p}: missing, but {REPORT} vouches for it (SHA-256 {vouched[p]}) — the "
+                     f"audited tree changed after the audit; {REDO.replace(' --config profile=smoke', '')}"
+                     for p in sorted(vouched, key=lambda p: gate_order(root, p))] + [
+        f"tables withdrawn: removed 3 table file(s) built from files that are no longer there as audited (run "
+        f"`snakemake --cores 2 tables` to build them again): {', '.join(tables)}"]
+    assert withdraw_tables(tables, gate(REPORT, root=root)) == []  # nothing left to withdraw
+
+
+def test_the_figures_target_fails_on_a_probe_report_that_no_longer_vouches_for_the_files(tree):
+    """`snakemake figures` passes only while the probe audit's report passed and every file it vouches for (the
+    probe files, the tables' sources) is as audited; otherwise it names the file and the call that audits afresh."""
+    from audits.report import write_report
+    from audits.runner import run_audit
+
+    root, settings = tree
+    probes = "results/audit/probes.json"
+    write_report(run_audit(root=root, settings=settings, scope="probes"), json_path=root / probes,
+                 md_path=root / "results/audit/probes.md")
+
+    def figures_check() -> SystemExit | None:
+        return run_script("figures_check.py", SimpleNamespace(
+            log=[str(root / "logs" / "figures_check.log")], input=SimpleNamespace(report=probes),
+            params=SimpleNamespace(audit=param(report_identity(settings)))))
+
+    assert figures_check() is None
+    before = sha(root / DAYS)
+    edit_keeping_time(root / DAYS)
+    assert isinstance(figures_check(), SystemExit)
+    assert (root / "logs/figures_check.log").read_text().splitlines() == [
+        f"figures refused: {DAYS}: SHA-256 is {sha(root / DAYS)}, {probes} vouches for {before} — the file changed "
+        f"after the audit; delete {probes} and run `snakemake --cores 2 figures --config profile=smoke` to audit the "
+        f"tree afresh"]
+
+
+def workflow_onerror(root: Path) -> subprocess.CompletedProcess:
+    """Calls the Snakefile's `onerror` handler, as Snakemake does after a failed or interrupted workflow in `root`
+    (the workflow parsed there under the tree's own config, profile smoke)."""
+    (root / "config.yaml").write_text((root / "config.json").read_text())  # JSON is YAML
+    code = (f"from pathlib import Path\n"
+            f"from snakemake.api import SnakemakeApi\n"
+            f"from snakemake.settings.types import ConfigSettings, OutputSettings, ResourceSettings\n"
+            f"with SnakemakeApi(OutputSettings()) as api:\n"
+            f"    wf = api.workflow(snakefile=Path({str(ROOT / 'Snakefile')!r}), workdir=Path({str(root)!r}),\n"
+            f"                      resource_settings=ResourceSettings(cores=1),\n"
+            f"                      config_settings=ConfigSettings(config={{'profile': 'smoke'}}))\n"
+            f"    wf._workflow._onerror(None)\n")
+    return subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+
+
+def test_the_workflow_withdraws_the_tables_when_it_fails_after_deleting_their_source(tree):
+    """The handler above is the workflow's own: Snakemake's `onerror` call after a failed rerun removes the tables
+    whose source the rerun deleted, and keeps them while their sources are as audited."""
+    root, _ = tree
+    assert audit(root) == 0
+    tables = [f"results/tables/{name}" for name in ("milan_main.md", "milan_main.tex", "milan_main.csv",
+                                                     "cross_dataset.md", "cross_dataset.tex", "cross_dataset.csv",
+                                                     "room.csv")]
+    for t in tables:
+        (root / t).parent.mkdir(parents=True, exist_ok=True)
+        (root / t).write_text("built from the audited tree\n")
+    kept = workflow_onerror(root)
+    assert kept.returncode == 0, kept.stderr[-3000:]
+    assert "tables withdrawn" not in kept.stderr and all((root / t).is_file() for t in tables)
+    (root / DAYS).unlink()
+    gone = workflow_onerror(root)
+    assert gone.returncode == 0, gone.stderr[-3000:]
+    assert not any((root / t).exists() for t in tables)
+    assert f"tables withdrawn: {DAYS}: missing, but {REPORT} vouches for it" in gone.stderr
+    assert (f"tables withdrawn: removed 7 table file(s) built from files that are no longer there as audited (run "
+            f"`snakemake --cores 2 tables` to build them again): {', '.join(tables)}") in gone.stderr
+
+
+def gate_order(root: Path, path: str) -> int:
+    """The position of ``path`` among the files the report vouches for (the order of the gate's messages)."""
+    files = json.loads((root / REPORT).read_text())["read_only"]["files"]
+    return [f["path"] for f in files].index(path)
+
+
 @pytest.mark.parametrize("content, message", [
     (None, f"{RECORD}: missing — the evaluate job writes it last, with the SHA-256 of days.parquet and "
            f"trajectory.npz; without it no result file of milan/greedy/seed0 is proven unchanged since its "

@@ -115,6 +115,10 @@ def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
     assert exp is not None, f"no experiment 'dswm' on {engines.mlflow_uri}: the jobs did not log to the server"
     assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
     assert exp.artifact_location == (slurm_run["work"] / "results" / "mlartifacts").resolve().as_uri()
+    # mlflow_init created the experiment of the figures' runs on the server too, beside it
+    figures = client.get_experiment_by_name("dswm-figures")
+    assert figures is not None and figures.artifact_location == exp.artifact_location
+    assert figures.tags["mlflow.experimentKind"] == "custom_model_development"
     workdir = str(slurm_run["work"].resolve())
     runs = client.search_runs([exp.experiment_id], filter_string=f"tags.workdir = '{workdir}'", max_results=1000)
     keys = sorted(r.data.tags["job_key"] for r in runs)

@@ -217,6 +217,34 @@ def test_a_clean_run_with_and_without_probes_passes(clean, probed):
     assert chk.evidence["rows_equal_to_their_evaluation"] == [f"{probe_path('milan', 'dswm', 0)} fraction 1.0"]
 
 
+def test_the_tables_audit_leaves_the_probe_files_to_the_probe_audit(probed):
+    """The workflow's two reports: the tables' (audit_report) reads no probe file, so its inputs stay those of
+    `tables` once `figures` has written probes; the probe report (audit_probes) reads them and the tables' sources,
+    and turns red on a probe number copied into one."""
+    from audits.probes import PROBES_LEFT_OUT
+    from audits.runner import run_audit
+
+    root, settings, day, _ = probed
+    tables = run_audit(root=root, settings=settings, scope="tables")
+    probe = probe_path("milan", "dswm", 0)
+    assert tables["passed"] and tables["scope"] == "tables"
+    assert probe not in [f["path"] for f in tables["read_only"]["files"]]
+    (chk,) = [c for c in tables["checks"] if c["id"] == "protocol.probes_out_of_tables"]
+    assert chk["evidence"]["probe_files"] == [] and chk["evidence"]["note"] == PROBES_LEFT_OUT
+    probes = run_audit(root=root, settings=settings, scope="probes")
+    assert probes["passed"] and [c["id"] for c in probes["checks"]] == ["protocol.probes_out_of_tables",
+                                                                        "read-only.unchanged"]
+    read = [f["path"] for f in probes["read_only"]["files"]]
+    assert probe in read and "results/milan/greedy/seed0/days.parquet" in read
+    copy_into(root, "greedy", lambda d: d.with_columns(
+        pl.when(pl.col("day") == day).then(pl.lit(0.4321)).otherwise(pl.col("sr_mean")).alias("sr_mean")))
+    red = run_audit(root=root, settings=settings, scope="probes")
+    assert not red["passed"] and red["checks"][0]["failures"][0].startswith(
+        "results/milan/greedy/seed0/days.parquet: day ")
+    with pytest.raises(ValueError, match="audit scope 'probe': expected one of all, tables, probes"):
+        run_audit(root=root, settings=settings, scope="probe")
+
+
 def test_a_checkpoints_probe_value_copied_into_a_result_file_fails_naming_it(probed):
     root, _, day, ctx = probed
     days = copy_into(root, "dswm", lambda d: d.with_columns(

@@ -326,6 +326,8 @@ def test_a_copied_tree_logs_into_itself_and_leaves_the_original_alone(tmp_path, 
     exp = client.get_experiment_by_name("dswm")
     assert exp.artifact_location == (copy / "results" / "mlartifacts").as_uri()
     assert exp.tags[tracking.TREE_TAG] == str(copy)
+    figures = client.get_experiment_by_name(tracking.figures_experiment("dswm"))  # the figures' runs move alike
+    assert figures.artifact_location == exp.artifact_location and figures.tags[tracking.TREE_TAG] == str(copy)
     assert (copy / "results" / "mlartifacts" / rerun.run_id / "artifacts" / "days.parquet").read_bytes() == \
         b"days of the copy"
     assert _files(original / "results" / "mlartifacts") == before  # nothing written into the original
@@ -370,3 +372,62 @@ def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monke
     assert run.data.tags["workdir"] == str(copy) and run.info.artifact_uri.startswith(new + "/")
     # a tracking server keeps its own artifact location: nothing of the store is touched
     assert tracking.adopt_store({**TREE_CFG, "tracking_uri": "http://127.0.0.1:1"}) is None
+
+
+def test_each_kind_of_run_is_tagged_and_the_figures_runs_have_their_own_experiment(store, tmp_path):
+    """The tables' runs (kind main) are alone in the configured experiment, which the UI opens on; the extra,
+    probe and world-model quality runs (each tagged with its kind) go to `<experiment>-figures`, which mlflow_init
+    creates and describes beside it."""
+    cfg, info, client = store
+    main = client.get_experiment(info["experiment_id"])
+    figures = client.get_experiment_by_name(cfg["experiment"] + "-figures")
+    assert info["figures_experiment"] == figures.name and info["figures_experiment_id"] == figures.experiment_id
+    assert figures.tags["mlflow.experimentKind"] == "custom_model_development"
+    assert figures.artifact_location == main.artifact_location
+    assert main.tags["mlflow.note.content"] == (
+        f"The runs of the tables: one train or evaluate run per job (tag kind = main). The runs behind the figures "
+        f"only are in the experiment '{figures.name}'.")
+    assert f"The tables' runs are in the experiment '{main.name}'." in figures.tags["mlflow.note.content"]
+    jobs = [("train", "main"), ("evaluate", "main"), ("extra/K8/evaluate", "extra"), ("probe", "probe"),
+            ("wm", "wm_quality")]
+    for stage, kind in jobs:
+        with open_job(cfg, tmp_path, stage=stage, kind=kind):
+            pass
+    where = {e: sorted((r.data.tags["stage"], r.data.tags["kind"]) for r in client.search_runs([e]))
+             for e in (main.experiment_id, figures.experiment_id)}
+    assert where == {main.experiment_id: [("evaluate", "main"), ("train", "main")],
+                     figures.experiment_id: [("extra/K8/evaluate", "extra"), ("probe", "probe"),
+                                             ("wm", "wm_quality")]}
+    with pytest.raises(ValueError, match="run kind 'figure': expected one of main, extra, probe, wm_quality"):
+        tracking.experiment_of(cfg, "figure")
+
+
+def test_a_store_made_before_the_figures_experiment_gets_it_and_loses_no_run(db, tmp_path, request):
+    """A store whose mlflow_init ran before the figures' runs had their own experiment (the main one alone, every
+    run in it): the first such job creates it, its rerun replaces the earlier run it had left in the main
+    experiment, a figure attaches to runs of both, and a workflow start closes orphans in both."""
+    cfg = {"store": str(db), "artifacts": str(tmp_path / "mlartifacts"), "experiment": request.node.name,
+           "batch_size": 7}
+    client = MlflowClient(tracking_uri=tracking.sqlite_uri(db))
+    main_id = client.create_experiment(cfg["experiment"], artifact_location=(tmp_path / "mlartifacts").as_uri())
+    assert client.get_experiment_by_name(cfg["experiment"] + "-figures") is None
+    here = tracking.workdir_tag()
+    old = client.create_run(main_id, tags={"job_key": "probe/milan/dswm/seed0", "workdir": here,
+                                                         "stage": "probe"})
+    client.set_terminated(old.info.run_id, "FINISHED")
+    with open_job(cfg, tmp_path, stage="probe", method="dswm", kind="probe") as run:
+        pass
+    figures = client.get_experiment_by_name(cfg["experiment"] + "-figures")
+    assert figures.artifact_location == (tmp_path / "mlartifacts").as_uri()
+    assert figures.tags["mlflow.experimentKind"] == "custom_model_development"
+    assert figures.tags["mlflow.note.content"].startswith("The runs behind the figures only")
+    assert client.get_run(run.run_id).info.experiment_id == figures.experiment_id
+    assert client.get_run(old.info.run_id).info.lifecycle_stage == "deleted"
+    with open_job(cfg, tmp_path, stage="evaluate", method="dswm"):
+        pass
+    png = tmp_path / "fig.png"
+    png.write_bytes(b"png")
+    assert tracking.attach_figures(mlflow_cfg=cfg, paths=[png], stage=["evaluate", "probe"], methods=["dswm"]) == 2
+    orphan = client.create_run(figures.experiment_id, tags={"job_key": "wm/milan/dswm/seed0", "workdir": here})
+    assert tracking.close_orphans(mlflow_cfg=cfg) == 1
+    assert client.get_run(orphan.info.run_id).info.status == "KILLED"

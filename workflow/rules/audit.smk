@@ -1,14 +1,18 @@
 # Leakage audit (docs/PROTOCOL.md §4-§6, paper Sections I and V-B): read-only checks of the splits, the training
 # statistics and the protocol, from the files alone. `audit_report` writes the report whatever the verdict; the
 # tables rule builds no table unless that report passed, audits the current profile and settings, and every file it
-# vouches for is unchanged. `audit` (a target with no output, so Snakemake runs it on every call) audits the tree
-# afresh, rewrites the report and fails when any check fails.
+# vouches for is unchanged. Its inputs are the tables' sources only: the probe files that `figures` writes are
+# audited apart (`audit_probes`, workflow/rules/probes.smk), so a finished tree stays up to date for `tables` after
+# `figures`. `audit` (a target with no output, so Snakemake runs it on every call) audits the tree afresh, both
+# parts, rewrites their reports and fails when any check fails.
 from audits.runner import report_identity
 
 AUDIT_SETTINGS = S.param(S.audit_slice(SETTINGS))
 """The settings the audit runs under (every setting but the display and selection ones): its rerun trigger."""
 AUDIT_IDENTITY = report_identity(SETTINGS)
 """{"profile", "config_hash"} a report of the audit under the current settings carries (the tables gate's check)."""
+PROBE_AUDIT = {"json": "results/audit/probes.json", "md": "results/audit/probes.md"}
+"""The report of the probe part of the audit (the `audit_probes` rule's outputs, rewritten by `audit`)."""
 AUDIT_INPUTS = dict(
     raw=[p for d in DATASETS for p in raw_files(d)],
     tensors=expand(rules.prepare.output.tensor, dataset=DATASETS),
@@ -25,10 +29,6 @@ AUDIT_INPUTS = dict(
     # present: declared then, so a run of calibrate finishes before the audit reads it and a new record
     # re-audits.
     calibration=lambda wildcards: [p for p in rules.calibrate.output if INTENSITY or Path(p).exists()],
-    # The sample-efficiency probe's files (workflow/rules/probes.smk), optional as the calibration record: the
-    # audit reads those present and proves none of their numbers is in a table's source
-    # (protocol.probes_out_of_tables); a run without probes (after `tables` alone) reads none.
-    probes=lambda wildcards: [p for p in probe_files() if Path(p).exists()],
 )
 """Every file the audit reads that a rule writes: the inputs of `audit_report`, `audit` and the `tables` target."""
 
@@ -43,6 +43,7 @@ rule audit_report:
     params:
         settings=AUDIT_SETTINGS,
         configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
+        scope="tables",  # audits.runner.SCOPES: every check, over the tables' sources (no probe file)
     log:
         "logs/audit/report.log",
     benchmark:
@@ -54,17 +55,23 @@ rule audit_report:
         "../scripts/audit.py"
 
 
-# No output: Snakemake runs a targeted rule without output on every call (`snakemake audit` never answers "Nothing
-# to be done"), first regenerating any of its inputs that is missing. It runs the whole audit itself (its inputs
-# are what the audit reads, not the report, so the audit runs once) and rewrites results/audit/report.{json,md}.
+# No output: Snakemake runs a targeted rule without output on every call (`snakemake audit` runs this one job and
+# nothing else on a finished tree), first regenerating any of its inputs that is missing. It runs the whole audit
+# itself (its inputs are what the audit reads, not the reports, so the audit runs once): the tables' part, rewriting
+# results/audit/report.{json,md}, and, where the sample-efficiency probe's files exist (after `figures`), the probe
+# part, rewriting results/audit/probes.{json,md}.
 rule audit:
     input:
         **AUDIT_INPUTS,
+        # optional as the calibration record: the probe files present (workflow/rules/probes.smk)
+        probes=lambda wildcards: [p for p in probe_files() if Path(p).exists()],
     params:
         settings=AUDIT_SETTINGS,
         configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
         json=rules.audit_report.output.json,
         md=rules.audit_report.output.md,
+        probes_json=PROBE_AUDIT["json"],
+        probes_md=PROBE_AUDIT["md"],
     log:
         "logs/audit/audit.log",
     threads: 1

@@ -76,24 +76,23 @@ rule figure_eda:
         "../scripts/figure_results.py"
 
 
-# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed),
-# then the whole leakage audit again, now over the probe files too: it rewrites results/audit/report.{json,md} and
-# fails the call when any check fails, e.g. when a probe number reached a table's source. Like `audit`, a target
-# without output, so it runs on every call.
+# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed) and
+# the probe part of the leakage audit (`audit_probes`, workflow/rules/probes.smk); the call fails unless that report
+# passed and vouches for the files as they are now, e.g. when a probe number reached a table's source. Like
+# `tables`, a target without output: on a finished tree its own check is the one job it runs, and it regenerates
+# any of its inputs that is missing.
 rule figures:
     input:
         FIGURE_TARGETS,
-        probe_files=probe_files(),  # audited (protocol.probes_out_of_tables) once they exist
+        report=rules.audit_probes.output.json,
+        probe_files=probe_files(),
         **AUDIT_INPUTS,
     params:
-        settings=AUDIT_SETTINGS,
-        configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
-        json=rules.audit_report.output.json,
-        md=rules.audit_report.output.md,
+        audit=S.param(AUDIT_IDENTITY),
     log:
-        "logs/audit/figures.log",
+        "logs/figures_check.log",
     threads: 1
     resources:
         **job_resources("figures"),
     script:
-        "../scripts/audit.py"
+        "../scripts/figures_check.py"

@@ -3,7 +3,7 @@
 # at figures.sample_efficiency.fractions of their fixed budget (their `snapshots` output; dswm.settings.probe_jobs);
 # the `probe` rule evaluates each on ONE fixed test day (the first ID test day) in the evaluation's environment, no
 # early stopping, no model selection. Outputs under results/probes/: never a table's source, and the audit proves
-# that no probe number reached one (protocol.probes_out_of_tables; audit.smk reads the probe files when present).
+# that no probe number reached one (protocol.probes_out_of_tables, in the `audit_probes` report below).
 # Each probe row records the job's evaluated value on that day, so the audit tells the evaluation's own number (the
 # trained model's, as a rule) from a probe number. figures.seeds are seeds the profile runs (checked in extra.smk).
 PROBE_JOBS = S.probe_jobs(SETTINGS)
@@ -42,6 +42,30 @@ rule probe:
         **job_resources("probe", method="{method}"),
     script:
         "../scripts/probe.py"
+
+
+# The probe part of the leakage audit (audits.runner.SCOPES["probes"]: protocol.probes_out_of_tables over the probe
+# files and the tables' sources), its own report whatever the verdict; the `figures` target passes only when it
+# passed. The main audit (`audit_report`) leaves the probe files out, so that its inputs stay those of `tables`.
+rule audit_probes:
+    input:
+        probes=probe_files(),
+        results=result_files(),  # the tables' sources, which no probe number may reach
+    output:
+        json=PROBE_AUDIT["json"],
+        md=report(PROBE_AUDIT["md"], caption="../report/audit_probes.rst", category="Leakage audit",
+                  labels={"report": "probe audit"}),
+    params:
+        settings=AUDIT_SETTINGS,
+        configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
+        scope="probes",
+    log:
+        "logs/audit/probes.log",
+    threads: 1
+    resources:
+        **job_resources("audit_probes"),
+    script:
+        "../scripts/audit.py"
 
 
 rule figure_sample_efficiency:

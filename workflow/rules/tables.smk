@@ -55,3 +55,17 @@ rule tables:
         **job_resources("tables"),
     script:
         "../scripts/tables_check.py"
+
+
+# A failed or interrupted workflow (a job that failed, Ctrl-C, SIGINT or SIGTERM to Snakemake) may have deleted files
+# the tables rest on: a job's outputs are removed before it runs, and a failed job leaves none. Tables whose audit
+# report no longer vouches for the files as they are (missing or changed; audits.runner.gate, without the settings'
+# identity) are removed then, rather than left to be taken for current results; the next successful `snakemake
+# tables` builds them again. Tables whose sources are intact are kept, whatever job failed.
+onerror:
+    from audits.runner import gate
+    from dswm.pipeline.stale import withdraw_tables
+
+    for _line in withdraw_tables(list(rules.build_tables.output),
+                                 gate(rules.audit_report.output.json, root=Path.cwd())):
+        print(_line, file=sys.stderr)

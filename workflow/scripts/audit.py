@@ -1,6 +1,7 @@
-"""Leakage audit: `audit_report` runs every check read-only and writes the report, whatever the verdict; `audit` (a
-target without output, which Snakemake runs on every call) audits afresh, rewrites the same report and exits 1 when
-any check fails, printing each finding."""
+"""Leakage audit: `audit_report` runs every check read-only over the tables' sources and writes the report, whatever
+the verdict; `audit_probes` does the same for the probe files (protocol.probes_out_of_tables); `audit` (a target
+without output, which Snakemake runs on every call) runs both afresh (the probe audit when probe files exist),
+rewrites their reports and exits 1 when any check fails, printing each finding."""
 import logging
 import sys
 from pathlib import Path
@@ -13,17 +14,27 @@ from audits.runner import run_audit
 from dswm.settings import Settings, read_param
 
 p = snakemake.params  # noqa: F821
-report = run_audit(root=Path.cwd(), settings=Settings.from_plain(read_param(p.settings)),
-                   extra_reads=[Path(f) for f in p.configfiles.value])
-out = snakemake.output if snakemake.rule == "audit_report" else p  # noqa: F821 (`audit` has no output: params)
-write_report(report, json_path=out.json, md_path=out.md)
-print(to_markdown(report).split("## Evidence")[0], file=sys.stderr)
-if snakemake.rule == "audit":  # noqa: F821
-    failing = [f"{c['id']}: {m}" for c in report["checks"] if not c["passed"] for m in c["failures"]]
-    for line in failing:
-        print(f"audit FAIL {line}", file=sys.stderr)
-        print(f"audit FAIL {line}", file=sys.__stderr__)
+settings = Settings.from_plain(read_param(p.settings))
+reads = [Path(f) for f in p.configfiles.value]
+if snakemake.rule == "audit":  # noqa: F821 (`audit` has no output: its reports are named in params)
+    probed = list(getattr(snakemake.input, "probes", []))  # noqa: F821 (the probe files present)
+    runs = [("tables", p.json, p.md)] + ([("probes", p.probes_json, p.probes_md)] if probed else [])
+else:
+    runs = [(p.scope, snakemake.output.json, snakemake.output.md)]  # noqa: F821
+failed = []
+for scope, json_path, md_path in runs:
+    report = run_audit(root=Path.cwd(), settings=settings, extra_reads=reads, scope=scope)
+    write_report(report, json_path=json_path, md_path=md_path)
+    print(to_markdown(report).split("## Evidence")[0], file=sys.stderr)
     if not report["passed"]:
-        print(f"leakage audit failed ({len(failing)} findings); see {out.json} and {out.md}", file=sys.__stderr__)
+        failed.append((json_path, md_path))
+    for line in [f"{c['id']}: {m}" for c in report["checks"] if not c["passed"] for m in c["failures"]]:
+        if snakemake.rule == "audit":  # noqa: F821
+            print(f"audit FAIL {line}", file=sys.stderr)
+            print(f"audit FAIL {line}", file=sys.__stderr__)
+if snakemake.rule == "audit":  # noqa: F821
+    if failed:
+        where = "; ".join(f"{j} and {m}" for j, m in failed)
+        print(f"leakage audit failed; see {where}", file=sys.__stderr__)
         sys.exit(1)
-    print(f"leakage audit passed: every check is green ({out.json})", file=sys.stderr)
+    print(f"leakage audit passed: every check is green ({', '.join(str(r[1]) for r in runs)})", file=sys.stderr)

@@ -375,12 +375,13 @@ from dswm.settings import scale_intensity  # noqa: E402
 
 def _variant_run(*, job: Mapping[str, Any], part: str, variant: str, dataset: str, method: str, seed: int,
                  repo: str | Path, keep: Sequence[str | Path]):
-    """The MLflow run of one extra job: tagged ``stage`` "extra", ``variant`` and ``extra_job`` (``part``: train or
-    evaluate); its job key (``extra/<variant>/<part>/<dataset>/<method>/seed<seed>``) is its own, so a rerun
-    replaces only its own earlier run."""
+    """The MLflow run of one extra job, in the figures' experiment (``kind`` "extra"): tagged ``stage`` "extra",
+    ``variant`` and ``extra_job`` (``part``: train or evaluate); its job key
+    (``extra/<variant>/<part>/<dataset>/<method>/seed<seed>``) is its own, so a rerun replaces only its own earlier
+    run."""
     return tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=f"extra/{variant}/{part}",
                             dataset=dataset, method=method, seed=seed, config_hash=stable_hash(job, length=12),
-                            repo=repo, keep=keep)
+                            repo=repo, keep=keep, kind="extra")
 
 
 def _variant_common(job: Mapping[str, Any], key: str, cls: type,

@@ -52,7 +52,8 @@ def probe_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Pat
         on_day = pl.read_parquet(evaluation).filter(pl.col("day") == day)["sr_mean"]
         evaluated = float(on_day[0]) if len(on_day) else None
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="probe", dataset=dataset, method=method,
-                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo, keep=[out]) as run:
+                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo, keep=[out],
+                          kind="probe") as run:
         run.set_tags({"probe_day": tensor.labels[day], "diagnostic_only": "true",
                       "snapshots": _workdir_relative(snapshots_dir)})
         scored: dict[str, dict] = {}

@@ -1,12 +1,14 @@
-"""MLflow tracking of the workflow's jobs: one store, one experiment, one run per job.
+"""MLflow tracking of the workflow's jobs: one store, two experiments, one run per job.
 
 The store is the SQLite file ``mlflow.store`` on one machine, or, where ``mlflow.tracking_uri`` names one, an MLflow
 tracking server (on a cluster: PostgreSQL behind it, artifacts on the shared filesystem; docs/CLUSTER.md). The
-store and the experiment are created once by the ``mlflow_init`` rule (:func:`init_store`); every training or
-evaluation job then opens exactly one run with :func:`job_run`. A SQLite store inside the tree belongs to that tree:
-after the tree is copied or moved, the store's absolute paths are made the copy's own (:func:`adopt_store`), so a
-job in the copy never writes into the tree it was copied from. A run is tagged with its job key
-(stage/dataset/method/seed), the working directory it ran in, the profile, the git commit and the hash of its
+store and its experiments are created once by the ``mlflow_init`` rule (:func:`init_store`): ``mlflow.experiment``
+holds the tables' train and evaluate runs, ``<experiment>-figures`` the runs behind the figures only (extra runs,
+probe, world-model quality), so the UI opens on the tables' runs. Every such job then opens exactly one run with
+:func:`job_run`. A SQLite store inside the tree belongs to that tree: after the tree is copied or moved, the store's
+absolute paths are made the copy's own (:func:`adopt_store`), so a job in the copy never writes into the tree it was
+copied from. A run is tagged with its kind (:data:`RUN_KINDS`), its job key (stage/dataset/method/seed), the
+working directory it ran in, the profile, the git commit and the hash of its
 settings, and carries the settings slice it read as params. Metrics go out in batches (one round trip per batch
 instead of one per value). When a job is rerun, the previous FINISHED runs of the same job key and working
 directory are deleted once the new one finishes, so the UI never shows two finished runs of one job; a job that
@@ -113,22 +115,78 @@ EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 """The experiment tag that makes the MLflow UI open on the training-runs view (without it, MLflow 3 opens on
 the GenAI overview, whose traces page this project never fills)."""
 
+RUN_KINDS = {
+    "main": "a train or evaluate job of the tables (the workflow's `tables` target)",
+    "extra": "an extra run behind a figure (do(s) probe, scaling sweeps; workflow/rules/extra.smk)",
+    "probe": "the sample-efficiency probe of a train job's snapshots (workflow/rules/probes.smk)",
+    "wm_quality": "the world-model quality replay of a DSWM model (workflow/rules/wm.smk)",
+}
+"""The ``kind`` tag of a run -> what the run is. The main runs go to the experiment ``mlflow.experiment``; the
+others, which only the figures use, to :func:`figures_experiment`, so the UI opens on the tables' runs alone."""
+FIGURES_SUFFIX = "-figures"
+"""The figures' experiment is named after the main one with this suffix (``dswm`` -> ``dswm-figures``)."""
+EXPERIMENT_NOTES = {
+    "main": "The runs of the tables: one train or evaluate run per job (tag kind = main). The runs behind the "
+            "figures only are in the experiment '{figures}'.",
+    "figures": "The runs behind the figures only, none a table's source: extra runs, the sample-efficiency probe "
+               "and the world-model quality replay (tag kind = extra, probe or wm_quality). The tables' runs are "
+               "in the experiment '{main}'.",
+}
+"""Each experiment's description (the ``mlflow.note.content`` tag the UI shows above its runs)."""
+
+
+def figures_experiment(experiment: str) -> str:
+    """The name of the experiment of the figures' runs, beside the main ``experiment``."""
+    return experiment + FIGURES_SUFFIX
+
+
+def experiment_of(mlflow_cfg: Mapping[str, Any], kind: str) -> str:
+    """The experiment a run of ``kind`` (a key of :data:`RUN_KINDS`) is logged to."""
+    if kind not in RUN_KINDS:
+        raise ValueError(f"run kind {kind!r}: expected one of {', '.join(RUN_KINDS)}")
+    main = mlflow_cfg["experiment"]
+    return main if kind == "main" else figures_experiment(main)
+
+
+def _ensure_experiment(client: MlflowClient, experiment: str, part: str, location: str) -> str:
+    """The id of the active experiment ``part`` ("main" or "figures") of the main ``experiment``, created (artifacts
+    under ``location``) or restored if needed, tagged :data:`EXPERIMENT_KIND` and described
+    (:data:`EXPERIMENT_NOTES`)."""
+    names = {"main": experiment, "figures": figures_experiment(experiment)}
+    found = _retry(client.get_experiment_by_name, names[part])
+    if found is None:
+        try:
+            exp_id = _retry(client.create_experiment, names[part], artifact_location=location)
+        except TrackingError:  # another workflow (or job) on the same store created it first
+            found = _retry(client.get_experiment_by_name, names[part])
+            if found is None:
+                raise
+    if found is not None:
+        exp_id = found.experiment_id
+        if found.lifecycle_stage == "deleted":
+            _retry(client.restore_experiment, exp_id)
+    _retry(client.set_experiment_tag, exp_id, *EXPERIMENT_KIND)
+    _retry(client.set_experiment_tag, exp_id, "mlflow.note.content", EXPERIMENT_NOTES[part].format(**names))
+    return exp_id
+
 
 def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tracking_uri: str | None = None,
                http: Mapping[str, Any] | None = None) -> dict:
-    """Create the store (the SQLite file, unless ``tracking_uri`` names a server) and the experiment (idempotent),
-    tag it :data:`EXPERIMENT_KIND`, and describe them.
+    """Create the store (the SQLite file, unless ``tracking_uri`` names a server) and its two experiments
+    (idempotent): ``experiment``, of the tables' runs, and :func:`figures_experiment`, of the runs behind the figures
+    only; tag both :data:`EXPERIMENT_KIND` and describe each (:data:`EXPERIMENT_NOTES`); describe them.
 
     Args:
         store: path of the SQLite file, e.g. results/mlflow.db (unused when ``tracking_uri`` is given).
         artifacts: directory under which each run's artifacts are stored; with a server, a directory on the
-            filesystem every job shares: the experiment's artifact location, written by the jobs directly.
-        experiment: experiment name.
+            filesystem every job shares: the experiments' artifact location, written by the jobs directly.
+        experiment: name of the main experiment.
         tracking_uri: the tracking server's URL (``mlflow.tracking_uri``), or None for the SQLite store.
         http: ``mlflow.http`` (retries, backoff and timeout of a server's requests).
 
     Returns:
-        {"tracking_uri", "experiment", "experiment_id", "artifact_location"}.
+        {"tracking_uri", "experiment", "experiment_id", "artifact_location", "figures_experiment",
+        "figures_experiment_id"}.
 
     Raises:
         TrackingError: the server cannot be reached (after the retries), named with the call that failed.
@@ -138,26 +196,13 @@ def init_store(*, store: str | Path, artifacts: str | Path, experiment: str, tra
         Path(store).parent.mkdir(parents=True, exist_ok=True)
     Path(artifacts).mkdir(parents=True, exist_ok=True)
     client = client_for(cfg)
-    found = _retry(client.get_experiment_by_name, experiment)
     location = Path(artifacts).resolve().as_uri()
-    if found is None:
-        try:
-            exp_id = _retry(client.create_experiment, experiment, artifact_location=location)
-        except TrackingError:  # another workflow on the same server created it first
-            found = _retry(client.get_experiment_by_name, experiment)
-            if found is None:
-                raise
-            exp_id = found.experiment_id
-    elif found.lifecycle_stage == "deleted":
-        _retry(client.restore_experiment, found.experiment_id)
-        exp_id = found.experiment_id
-    else:
-        exp_id = found.experiment_id
-    _retry(client.set_experiment_tag, exp_id, *EXPERIMENT_KIND)
+    ids = {part: _ensure_experiment(client, experiment, part, location) for part in EXPERIMENT_NOTES}
     adopt_store({**cfg, "artifacts": str(artifacts), "experiment": experiment})  # a SQLite store copied with its tree
-    exp = _retry(client.get_experiment, exp_id)
+    exp = _retry(client.get_experiment, ids["main"])
     return {"tracking_uri": tracking_uri or sqlite_uri(store), "experiment": experiment,
-            "experiment_id": exp.experiment_id, "artifact_location": exp.artifact_location}
+            "experiment_id": exp.experiment_id, "artifact_location": exp.artifact_location,
+            "figures_experiment": figures_experiment(experiment), "figures_experiment_id": ids["figures"]}
 
 
 TREE_TAG = "dswm.tree"
@@ -229,22 +274,26 @@ def adopt_store(mlflow_cfg: Mapping[str, Any], *, workdir: str | None = None) ->
             if tag is not None and old_root == root and old_location == location:
                 db.execute("ROLLBACK")
                 return None
+            # Every experiment of this workflow in the store (the tables' one and the figures' one) moves alike.
+            names = (mlflow_cfg["experiment"], figures_experiment(mlflow_cfg["experiment"]))
+            ids = [r[0] for r in db.execute("SELECT experiment_id FROM experiments WHERE name IN (?, ?)", names)]
             moved = 0
-            if old_root is not None and old_root != root:
-                runs = db.execute("SELECT run_uuid, artifact_uri FROM runs WHERE experiment_id = ?",
-                                  (exp_id,)).fetchall()
-                new_uris = [(_moved(uri, old_root, root), run) for run, uri in runs if uri]
-                db.executemany("UPDATE runs SET artifact_uri = ? WHERE run_uuid = ?", new_uris)
-                moved = db.execute("UPDATE tags SET value = ? WHERE key = 'workdir' AND value = ? AND run_uuid IN "
-                                   "(SELECT run_uuid FROM runs WHERE experiment_id = ?)",
-                                   (root, old_root, exp_id)).rowcount
-                sources = db.execute("SELECT dataset_uuid, dataset_source FROM datasets WHERE experiment_id = ?",
-                                     (exp_id,)).fetchall()
-                db.executemany("UPDATE datasets SET dataset_source = ? WHERE dataset_uuid = ?",
-                               [(_moved(src, old_root, root), uid) for uid, src in sources])
-            db.execute("UPDATE experiments SET artifact_location = ? WHERE experiment_id = ?", (location, exp_id))
-            db.execute("INSERT OR REPLACE INTO experiment_tags (key, value, experiment_id) VALUES (?, ?, ?)",
-                       (TREE_TAG, root, exp_id))
+            for eid in ids:
+                if old_root is not None and old_root != root:
+                    runs = db.execute("SELECT run_uuid, artifact_uri FROM runs WHERE experiment_id = ?",
+                                      (eid,)).fetchall()
+                    new_uris = [(_moved(uri, old_root, root), run) for run, uri in runs if uri]
+                    db.executemany("UPDATE runs SET artifact_uri = ? WHERE run_uuid = ?", new_uris)
+                    moved += db.execute("UPDATE tags SET value = ? WHERE key = 'workdir' AND value = ? AND run_uuid "
+                                        "IN (SELECT run_uuid FROM runs WHERE experiment_id = ?)",
+                                        (root, old_root, eid)).rowcount
+                    sources = db.execute("SELECT dataset_uuid, dataset_source FROM datasets WHERE experiment_id = ?",
+                                         (eid,)).fetchall()
+                    db.executemany("UPDATE datasets SET dataset_source = ? WHERE dataset_uuid = ?",
+                                   [(_moved(src, old_root, root), uid) for uid, src in sources])
+                db.execute("UPDATE experiments SET artifact_location = ? WHERE experiment_id = ?", (location, eid))
+                db.execute("INSERT OR REPLACE INTO experiment_tags (key, value, experiment_id) VALUES (?, ?, ?)",
+                           (TREE_TAG, root, eid))
             db.execute("COMMIT")
         except BaseException:
             db.execute("ROLLBACK")
@@ -347,10 +396,10 @@ def workdir_tag() -> str:
     return str(Path.cwd().resolve())
 
 
-def _runs_of(client: MlflowClient, exp_id: str, key: str, status: str, workdir: str) -> list:
-    """Active runs of the experiment with job key ``key``, working directory ``workdir`` and the given status."""
+def _runs_of(client: MlflowClient, exp_ids: Sequence[str], key: str, status: str, workdir: str) -> list:
+    """Active runs of the experiments with job key ``key``, working directory ``workdir`` and the given status."""
     query = f"tags.job_key = '{key}' and tags.workdir = '{workdir}' and attributes.status = '{status}'"
-    return _retry(client.search_runs, [exp_id], filter_string=query, max_results=1000)
+    return _retry(client.search_runs, list(exp_ids), filter_string=query, max_results=1000)
 
 
 class _Terminated(Exception):
@@ -366,12 +415,27 @@ def _store_client(mlflow_cfg: Mapping[str, Any]) -> MlflowClient:
 
 
 def _experiment(client: MlflowClient, mlflow_cfg: Mapping[str, Any]):
-    """The configured experiment, checked to exist (the mlflow_init rule creates it)."""
+    """The configured (main) experiment, checked to exist (the mlflow_init rule creates it)."""
     exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
     if exp is None:
         raise LookupError(f"{tracking_uri(mlflow_cfg)}: experiment {mlflow_cfg['experiment']!r} missing; the "
                           f"mlflow_init rule creates it")
     return exp
+
+
+def _experiments(client: MlflowClient, mlflow_cfg: Mapping[str, Any], kind: str) -> tuple[str, list[str]]:
+    """(the id of the experiment a run of ``kind`` goes to, the ids of both experiments that exist).
+
+    The main experiment must exist (the mlflow_init rule creates it); the figures' experiment, which mlflow_init
+    creates too, is created here when a store made before it lacks it (same artifact location as the main one)."""
+    target = experiment_of(mlflow_cfg, kind)
+    main = _experiment(client, mlflow_cfg)
+    figures = _retry(client.get_experiment_by_name, figures_experiment(main.name))
+    if target != main.name and (figures is None or figures.lifecycle_stage == "deleted"):
+        fid = _ensure_experiment(client, main.name, "figures", main.artifact_location)
+    else:
+        fid = figures.experiment_id if figures is not None else None
+    return (main.experiment_id if target == main.name else fid), [i for i in (main.experiment_id, fid) if i]
 
 
 def keep_unlogged(paths: Sequence[str | Path], keep_dir: str | Path) -> list[Path]:
@@ -391,20 +455,22 @@ def keep_unlogged(paths: Sequence[str | Path], keep_dir: str | Path) -> list[Pat
 @contextlib.contextmanager
 def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage: str, dataset: str,
             method: str, seed: int, config_hash: str, repo: str | Path = ".",
-            keep: Sequence[str | Path] = ()) -> Iterator[JobRun]:
+            keep: Sequence[str | Path] = (), kind: str = "main") -> Iterator[JobRun]:
     """Open the one MLflow run of a job; end it FINISHED, or FAILED if the body raises or is terminated.
 
     Args:
         mlflow_cfg: the ``mlflow`` section (tracking_uri or store, artifacts, experiment, batch_size, http,
             unlogged).
         settings: the settings slice the job read (plain form), logged as params.
-        stage: "train" or "evaluate".
+        stage: "train" or "evaluate" (a main run); the figures' runs name their own.
         dataset, method, seed: the job's wildcards.
         config_hash: hash of that slice (tag).
         repo: the repository, for the git commit tag.
         keep: the job's result files. When a tracking call fails for good (:class:`TrackingError`), those
             already written are copied to ``<mlflow.unlogged>/<job key>/`` before the job fails, and the error
             names them: Snakemake deletes a failed job's outputs, the copies stay.
+        kind: what the run is (:data:`RUN_KINDS`; the ``kind`` tag): "main" runs go to the experiment
+            ``mlflow.experiment``, the others to its figures' experiment (:func:`experiment_of`).
 
     Yields:
         The :class:`JobRun`.
@@ -416,18 +482,22 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     client = _store_client(mlflow_cfg)
     key = f"{stage}/{dataset}/{method}/seed{seed}"
     try:
-        exp = _experiment(client, mlflow_cfg)
+        # Earlier runs of the job key are looked up in both experiments: a store from before the figures' runs had
+        # their own experiment holds them in the main one, and they are replaced as any earlier run.
+        exp_id, both = _experiments(client, mlflow_cfg, kind)
         workdir = workdir_tag()
-        if not uses_server(mlflow_cfg) and (exp.tags.get(TREE_TAG) != workdir or exp.artifact_location
-                                            != Path(mlflow_cfg["artifacts"]).resolve().as_uri()):
-            if adopt_store(mlflow_cfg, workdir=workdir) is not None:  # a store copied with its tree
-                exp = _experiment(client, mlflow_cfg)
-        for stale in _runs_of(client, exp.experiment_id, key, "RUNNING", workdir):  # left behind by a killed job
+        if not uses_server(mlflow_cfg):
+            main = _experiment(client, mlflow_cfg)
+            if main.tags.get(TREE_TAG) != workdir or main.artifact_location != \
+                    Path(mlflow_cfg["artifacts"]).resolve().as_uri():
+                if adopt_store(mlflow_cfg, workdir=workdir) is not None:  # a store copied with its tree
+                    exp_id, both = _experiments(client, mlflow_cfg, kind)
+        for stale in _runs_of(client, both, key, "RUNNING", workdir):  # left behind by a killed job
             _retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     except TrackingError as err:
         raise TrackingError(f"job {key}: {err}; nothing was computed, run the job again once the tracking store "
                             f"answers") from err
-    tags = {"job_key": key, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
+    tags = {"job_key": key, "kind": kind, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
             "workdir": workdir, "profile": settings["profile"], "git_commit": git_commit(repo),
             "config_hash": config_hash, "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
 
@@ -449,7 +519,7 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
     job: JobRun | None = None
     try:
-        run = _retry(client.create_run, exp.experiment_id, tags=tags)
+        run = _retry(client.create_run, exp_id, tags=tags)
         job = JobRun(client=client, run_id=run.info.run_id, batch_size=int(mlflow_cfg["batch_size"]))
         state["defer"] = False
         if main:
@@ -478,7 +548,7 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    for old in _runs_of(client, exp.experiment_id, key, "FINISHED", workdir):
+    for old in _runs_of(client, both, key, "FINISHED", workdir):
         if old.info.run_id != job.run_id:
             _retry(client.delete_run, old.info.run_id)
 
@@ -495,11 +565,12 @@ def close_orphans(*, mlflow_cfg: Mapping[str, Any], workdir: str | None = None) 
     if not uses_server(mlflow_cfg) and not Path(mlflow_cfg["store"]).exists():
         return 0
     client = client_for(mlflow_cfg)
-    exp = _retry(client.get_experiment_by_name, mlflow_cfg["experiment"])
-    if exp is None:
+    names = [mlflow_cfg["experiment"], figures_experiment(mlflow_cfg["experiment"])]
+    exps = [e for e in (_retry(client.get_experiment_by_name, n) for n in names) if e is not None]
+    if not exps:
         return 0
     query = f"attributes.status = 'RUNNING' and tags.workdir = '{workdir or workdir_tag()}'"
-    runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=10000)
+    runs = _retry(client.search_runs, [e.experiment_id for e in exps], filter_string=query, max_results=10000)
     for run in runs:
         _retry(client.set_terminated, run.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     return len(runs)
@@ -533,13 +604,13 @@ def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path]
     the figure lands beside the run's result files. Returns how many runs received the files.
     """
     client = _store_client(mlflow_cfg)
-    exp = _experiment(client, mlflow_cfg)
+    _, both = _experiments(client, mlflow_cfg, "main")  # a figure shows main runs, the figures' runs, or both
     stages = [stage] if isinstance(stage, str) else list(stage)
     # tags allow no IN; the stages are chosen below
     query = f"attributes.status = 'FINISHED' and tags.workdir = '{workdir_tag()}'"
     if profile is not None:
         query += f" and tags.profile = '{profile}'"
-    runs = _retry(client.search_runs, [exp.experiment_id], filter_string=query, max_results=50000)
+    runs = _retry(client.search_runs, both, filter_string=query, max_results=50000)
     chosen = [r for r in runs if r.data.tags.get("stage") in stages
               and (datasets is None or r.data.tags.get("dataset") in datasets)
               and (methods is None or r.data.tags.get("method") in methods)]

@@ -101,7 +101,7 @@ def wm_quality_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str 
     tensor = load(tensor_dir)
     with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=STAGE, dataset=dataset, method=m.name,
                           seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
-                          keep=[rmse_out, returns_out, maps_out]) as run:
+                          keep=[rmse_out, returns_out, maps_out], kind="wm_quality") as run:
         ctrl = registry.build(m.name, target=m.target, options=m.options, seed=seed, device=ev.device)
         record = model_record(method=m.name, source=m.training_source or m.name, model=model, manifest=manifest)
         ctrl.load(model)
