@@ -263,8 +263,8 @@ class SqlRecomputation:
         try:
             crop, records = build(paths)
         except duckdb.Error as exc:
-            self.failed[ds] = AuditInputError(f"{ds}: the SQL recomputation from {[self.ctx.rel(p) for p in paths][:3]} "
-                                              f"failed ({exc})")
+            names = [self.ctx.rel(p) for p in paths][:3]
+            self.failed[ds] = AuditInputError(f"{ds}: the SQL recomputation from {names} failed ({exc})")
             raise self.failed[ds] from exc
         except AuditInputError as exc:
             self.failed[ds] = exc
@@ -281,7 +281,7 @@ class SqlRecomputation:
                             SELECT value FROM v UNION ALL  -- the cells and slots without demand
                             SELECT 0.0 FROM range($n - (SELECT count(*) FROM v)))),
                        (SELECT coalesce(sum(value), 0.0) FROM v) / $n""",
-                                                       {"q": self.ctx.percentile / 100.0, "n": entries[which]})[0]
+                {"q": self.ctx.percentile / 100.0, "n": entries[which]})[0]
         out = SqlStats(crop=crop, train_records=records, p99=p99, mean_raw=mean, entries=entries)
         self.stats[ds] = out
         return out
@@ -301,7 +301,8 @@ class SqlRecomputation:
         Returns:
             {"entries", "entries_off", "max_abs_error", "first": (label, slot, row, col, stored, expected) | None}.
         """
-        days = pa.table({"day": [int(d["index"]) for d in meta["days"]], "label": [str(d["label"]) for d in meta["days"]]})
+        days = pa.table({"day": [int(d["index"]) for d in meta["days"]],
+                         "label": [str(d["label"]) for d in meta["days"]]})
         self.con.register("meta_days", days)
         cmp = f"""
             WITH stored AS (SELECT m.label, p.slot, p.row, p.col, CAST(p.demand AS DOUBLE) AS v
@@ -405,9 +406,9 @@ def check_sql_tensor(ctx: AuditContext) -> Check:
                 continue
             if got["entries_off"]:
                 label, slot, row, col, stored, want = got["first"]
-                chk.fail(f"{ctx.rel(ctx.tensor_path(ds))}: {got['entries_off']} of {got['entries']} entries differ from "
-                         f"the SQL demand of their local day, slot and cell (first: day {label}, slot {slot}, row "
-                         f"{row}, col {col}: stored {stored:.7g}, SQL {want:.7g})")
+                chk.fail(f"{ctx.rel(ctx.tensor_path(ds))}: {got['entries_off']} of {got['entries']} entries differ "
+                         f"from the SQL demand of their local day, slot and cell (first: day {label}, slot {slot}, "
+                         f"row {row}, col {col}: stored {stored:.7g}, SQL {want:.7g})")
             chk.evidence[ds] = {k: v for k, v in got.items() if k != "first"}
     finally:
         close_recomputation(ctx)
