@@ -180,8 +180,8 @@ class SqlRecomputation:
                 except Exception as exc:  # fastexcel raises its own exception types
                     raise AuditInputError(f"{self.ctx.rel(path)}: cannot read as an Excel workbook ({exc})") from exc
             else:
-                sheets = [("", self.con.execute("SELECT * FROM read_csv($f, header = true, all_varchar = true)",
-                                                        {"f": str(path)}).to_arrow_table())]
+                sheets = [("", self.con.sql("SELECT * FROM read_csv($f, header = true, all_varchar = true)",
+                                                params={"f": str(path)}).to_arrow_table())]
             for sheet, tbl in sheets:
                 if tbl.num_rows == 0:
                     continue

@@ -13,6 +13,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import polars as pl
 import pytest
 
 from audit_fixtures import clean, one_torch_thread, prepare  # noqa: F401 (fixtures)
@@ -117,8 +118,6 @@ def test_a_reader_bug_passes_the_reader_checks_and_fails_the_sql_checks(tree, mo
 
 def test_the_sql_checks_name_a_stored_entry_that_differs(tree):
     root, settings = tree
-    import polars as pl
-
     path = root / "results/data/yjmob/demand.parquet"
     df = pl.read_parquet(path)
     df = df.with_columns(pl.when(pl.int_range(pl.len()) == 7).then(pl.col("demand") * 1.01)
@@ -152,8 +151,9 @@ class _Ctx:
 
 
 def test_shanghai_in_sql_equals_the_reader_on_demo_workbooks(tmp_path):
-    """Shanghai's workbooks through fastexcel and SQL (dirt dropped, a workbook present twice counted once, the
-    trailing window restarting at the gap between the segments) give the reader's tensor and crop."""
+    """Shanghai's workbooks through fastexcel and SQL (dirt dropped, a workbook present twice and one also as a CSV
+    export counted once, the trailing window restarting at the gap between the segments) give the reader's tensor
+    and crop."""
     from prep import shanghai
     from prep.demo.shanghai import generate
     from test_prep_shanghai import _config
@@ -162,9 +162,12 @@ def test_shanghai_in_sql_equals_the_reader_on_demo_workbooks(tmp_path):
     files = generate(cfg, tmp_path)
     twice = tmp_path / "copy of data_6.1~6.15.xlsx"
     shutil.copy(files[0], twice)
-    raw = shanghai.build(cfg, [*files, twice])
-    assert raw.dropped["duplicate_rows"] > 0 and raw.dropped["missing_location"] > 0
-    rec = sql.SqlRecomputation(_Ctx(cfg, [*files, twice]))
+    export = tmp_path / "data_6.16~6.30.csv"  # the second workbook once more, as a CSV export
+    pl.read_excel(files[1]).write_csv(export)
+    paths = [*files, twice, export]
+    raw = shanghai.build(cfg, paths)
+    assert raw.dropped["duplicate_rows"] > pl.read_excel(files[0]).height and raw.dropped["missing_location"] > 0
+    rec = sql.SqlRecomputation(_Ctx(cfg, paths))
     try:
         got = rec.dataset("shanghai")
         dense = np.zeros_like(raw.values)
