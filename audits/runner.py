@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from audits import crop, derived, probes, protocol, splits, statistics, training
+from audits import crop, derived, probes, protocol, splits, sql, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -30,6 +30,9 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     statistics.check_kappa,
     statistics.check_tensor,
     statistics.check_not_all_days,
+    sql.check_sql_crop,
+    sql.check_sql_normalizer,
+    sql.check_sql_tensor,
     derived.check_week,
     crop.check_crop,
     derived.check_initial_positions,
@@ -60,7 +63,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     """Runs one check; a check that crashes is a failed check (the audit never passes on an error)."""
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
-    family = {"derived": "statistics", "crop": "statistics", "training": "protocol",
+    family = {"derived": "statistics", "crop": "statistics", "sql": "statistics", "training": "protocol",
               "probes": "protocol"}.get(family, family)
     try:
         return fn(ctx)

@@ -101,7 +101,7 @@ def tables_script(root: Path, settings: Settings) -> SystemExit | None:
     return run_script("tables.py", SimpleNamespace(
         log=[str(root / "logs" / "tables.log")], input=SimpleNamespace(audit=REPORT),
         params=SimpleNamespace(settings=param(tables_slice(settings)), audit=param(report_identity(settings))),
-        output=SimpleNamespace(main_md="results/tables/milan_main.md")))
+        output=SimpleNamespace(main_md="results/tables/milan_main.md", db="results/results.duckdb")))
 
 
 # ---- file times speak only where content is unproven ----------------------------------------------------------

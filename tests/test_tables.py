@@ -1,6 +1,8 @@
 """Tables from result files: numbers worked out by hand, fixed CSV columns, row order, provenance line."""
 import csv
 import json
+import shutil
+from pathlib import Path
 
 import polars as pl
 import pytest
@@ -164,3 +166,39 @@ def test_the_main_table_follows_tables_main_dataset(tmp_path):
     with pytest.raises(ValueError, match=r"'tables.main_dataset' is 'yjmob', which this run does not evaluate"):
         build_tables(result_paths=paths, meta_paths=metas, specs=specs, run_order=["static", "greedy", "oracle"],
                      tables_cfg={**TABLES, "main_dataset": "yjmob"}, profile="demo", out_dir=tmp_path / "t2")
+
+
+def test_results_database_views_are_the_days_and_the_tables_numbers(tmp_path, monkeypatch):
+    """results.duckdb: `days` reads every result file in place (no copy), `summary` holds the tables' numbers, and the
+    stored paths are relative to the working directory, so a moved copy of the tree still answers."""
+    import duckdb
+
+    monkeypatch.chdir(tmp_path)
+    paths, metas = write_results(Path("results"))
+    specs = {m: BUILTIN[m] for m in ("static", "greedy", "oracle")}
+    build_tables(result_paths=paths, meta_paths=metas, specs=specs, run_order=["static", "greedy", "oracle"],
+                 tables_cfg=TABLES, profile="demo", out_dir=Path("results/tables"), database="results/results.duckdb")
+    assert sorted(p.name for p in Path("results").iterdir() if p.is_file()) == [  # no temp or WAL file left
+        "milan_meta.json", "results.duckdb", "shanghai_meta.json"]
+    moved = tmp_path.parent / f"{tmp_path.name}-moved"
+    shutil.copytree(tmp_path, moved)
+    shutil.rmtree(tmp_path / "results")
+    monkeypatch.chdir(moved)
+    con = duckdb.connect("results/results.duckdb", read_only=True)
+    n_days = sum(len(i) + len(o) for i, o in SCORES.values())
+    assert con.sql("SELECT count(*) FROM days").fetchall() == [(n_days,)] == [(30,)]
+    assert con.sql("SELECT count(*) FROM duckdb_tables()").fetchall() == [(0,)]  # views only: the data stays in Parquet
+    assert con.sql("SELECT sr_mean FROM days WHERE dataset = 'shanghai' AND method = 'greedy' AND split = 'ood'"
+                   ).fetchall() == [(0.62,)]
+    summary = {(r[0], r[1]): r for r in con.sql("SELECT dataset, method, weekday_mean, weekday_std, holiday_mean, "
+                                                "holiday_std, n_seeds, energy_weekday_mean, jain_holiday_std "
+                                                "FROM summary").fetchall()}
+    for row in read_csv(moved / "results/tables/cross_dataset.csv"):  # equal to the last bit, as the CSV writes it
+        got = summary[(row["dataset"], row["method"])]
+        assert [repr(v) for v in got[2:6]] == [row[k] for k in ("weekday_mean", "weekday_std", "holiday_mean",
+                                                                "holiday_std")]
+        assert str(got[6]) == row["n_seeds"]
+    for row in read_csv(moved / "results/tables/milan_main.csv"):
+        got = summary[("milan", row["method"])]
+        assert (repr(got[7]), repr(got[8])) == (row["energy_weekday_mean"], row["jain_holiday_std"])
+    assert summary[("milan", "static")][2] == pytest.approx(0.73)

@@ -20,6 +20,9 @@ rule build_tables:
         # the room a forecast could fill (tables.room), per dataset and split
         room_csv=report("results/tables/room.csv", caption="../report/table_room.rst", category="Tables",
                         labels={"table": "room a forecast could fill", "dataset": "all"}),
+        # DuckDB views over the result files (no copy): `days` (every evaluated day) and `summary` (the tables'
+        # numbers, from the same SQL); the paths are relative to the working directory (docs/PIPELINE.md)
+        db="results/results.duckdb",
     params:
         settings=S.param(S.tables_slice(SETTINGS)),
         audit=S.param(AUDIT_IDENTITY),  # {"profile", "config_hash"} the report must carry

@@ -19,6 +19,6 @@ if refusals:
     sys.exit(1)
 job = read_param(snakemake.params.settings)  # noqa: F821
 frames = tables_job(job=job, result_paths=list(inp.results), meta_paths={d: getattr(inp, d) for d in job["datasets"]},
-                    out_dir=Path(snakemake.output.main_md).parent)  # noqa: F821
+                    out_dir=Path(snakemake.output.main_md).parent, database=snakemake.output.db)  # noqa: F821
 for name, df in frames.items():
     print(f"{name}:\n{df}", file=sys.stderr)

@@ -324,8 +324,9 @@ def calibrate_job(*, job: Mapping[str, Any], tensor_dir: str | Path, out: str | 
 
 
 def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], meta_paths: Mapping[str, str | Path],
-               out_dir: str | Path) -> dict:
-    """Build <tables.main_dataset>_main and cross_dataset (md, tex, csv) from the result files.
+               out_dir: str | Path, database: str | Path | None = None) -> dict:
+    """Build <tables.main_dataset>_main and cross_dataset (md, tex, csv) from the result files, and the DuckDB
+    database of views over them (``results/results.duckdb``) when `database` is given.
 
     Args:
         job: the plain form of ``dswm.settings.tables_slice``.
@@ -333,7 +334,7 @@ def tables_job(*, job: Mapping[str, Any], result_paths: Sequence[str | Path], me
     specs = {m["name"]: build(registry.MethodSpec, m, f"methods.{m['name']}") for m in job["methods"]}
     return tables.build_tables(result_paths=result_paths, meta_paths=meta_paths, specs=specs,
                                run_order=[m["name"] for m in job["methods"]], tables_cfg=job["tables"],
-                               profile=job["profile"], out_dir=out_dir)
+                               profile=job["profile"], out_dir=out_dir, database=database)
 
 
 def select_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, out: str | Path,

@@ -7,7 +7,9 @@
 * ``cross_dataset`` (Table IV): the same per (method, dataset).
 
 A seed's score on a split is the mean of its days' ``sr_mean``; the table reports mean and sample standard
-deviation (ddof=1; 0 with a single seed) of those scores over seeds. Each table states the profile and
+deviation (ddof=1; 0 with a single seed) of those scores over seeds. The numbers come from one SQL query
+(``dswm.protocol.results_db.SUMMARY_SQL``), the one behind the ``summary`` view of ``results/results.duckdb``, which
+``build_tables`` writes beside the tables when asked. Each table states the profile and
 whether each dataset's data was the embedded demo or the real published files. Every file is written in
 Markdown, LaTeX and CSV (the CSV columns are fixed for other tools).
 
@@ -24,6 +26,7 @@ from typing import Any, Iterable, Mapping
 
 import polars as pl
 
+from dswm.protocol import results_db
 from prep.atomic import write_text
 from prep.tensor import read_meta
 
@@ -56,35 +59,6 @@ def read_results(paths: Iterable[str | Path]) -> pl.DataFrame:
     if not frames:
         raise ValueError("no result files given; expected results/{dataset}/{method}/seed{seed}/days.parquet")
     return pl.concat(frames)
-
-
-def summarize(days: pl.DataFrame, value: str = "sr_mean", prefix: str = "") -> pl.DataFrame:
-    """Per (dataset, method): mean/std over seeds of each seed's mean day score, per split.
-
-    Args:
-        days: rows (dataset, method, seed, split, day, ``value``).
-        value: the per-day column summarized (served ratio by default).
-        prefix: put before every output column but dataset, method and n_seeds (e.g. "energy_").
-
-    Returns:
-        Columns dataset, method, <prefix>weekday_mean, <prefix>weekday_std, <prefix>holiday_mean,
-        <prefix>holiday_std, n_seeds. A seed whose days lack ``value`` (null) gives a null mean.
-    """
-    per_seed = days.group_by("dataset", "method", "seed", "split").agg(pl.col(value).mean().alias("score"))
-    out = None
-    for split, word in (("id", "weekday"), ("ood", "holiday")):
-        s = (per_seed.filter(pl.col("split") == split).group_by("dataset", "method")
-             .agg(pl.col("score").mean().alias(f"{prefix}{word}_mean"),
-                  pl.col("score").std(ddof=1).fill_null(0.0).alias(f"{prefix}{word}_std"),
-                  pl.col("seed").n_unique().alias(f"{word}_n")))
-        out = s if out is None else out.join(s, on=["dataset", "method"], how="full", coalesce=True)
-    bad = out.filter(pl.col("weekday_n").is_null() | pl.col("holiday_n").is_null()
-                     | (pl.col("weekday_n") != pl.col("holiday_n")))
-    if bad.height:
-        row = bad.row(0, named=True)
-        raise ValueError(f"results of {row['dataset']}/{row['method']}: weekday and holiday splits cover different "
-                         f"seeds ({row['weekday_n']} vs {row['holiday_n']}); expected both splits for every seed")
-    return out.with_columns(pl.col("weekday_n").cast(pl.Int64).alias("n_seeds")).drop("weekday_n", "holiday_n")
 
 
 def _order(methods: list[str], classes: Mapping[str, str], class_order: list[str]) -> list[str]:
@@ -124,7 +98,7 @@ def provenance(profile: str, sources: Mapping[str, str]) -> str:
 
 def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str, str | Path],
                  specs: Mapping[str, Any], run_order: list[str], tables_cfg: Mapping[str, Any],
-                 profile: str, out_dir: str | Path) -> dict[str, pl.DataFrame]:
+                 profile: str, out_dir: str | Path, database: str | Path | None = None) -> dict[str, pl.DataFrame]:
     """Write <main_dataset>_main.{md,tex,csv}, cross_dataset.{md,tex,csv} and room.csv into ``out_dir``.
 
     Args:
@@ -135,16 +109,21 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         tables_cfg: the ``tables`` section (main_dataset, decimals, split_labels, class_order, room).
         profile: the profile the results must come from.
         out_dir: destination directory.
+        database: where to write the DuckDB database of views ``days`` and ``summary`` over ``result_paths``
+            (``results_db.write_database``; the paths are stored as given); None writes none.
 
     Returns:
         {"<main_dataset>_main": DataFrame, "cross_dataset": DataFrame} with the CSV columns.
     """
+    result_paths = list(result_paths)
     days = read_results(result_paths)
     wrong = days.filter(pl.col("profile") != profile)
     if wrong.height:
         raise ValueError(f"result files hold profile {wrong['profile'][0]!r} rows, expected {profile!r} only "
                          f"(rerun the evaluate jobs of this profile)")
-    summary = summarize(days)
+    summary = results_db.summary(results_db.connect(result_paths))
+    if database is not None:
+        results_db.write_database(database, result_paths)
     sources = {ds: read_meta(p, keys=("source",))["source"] for ds, p in meta_paths.items()}
     note = provenance(profile, sources)
     d = int(tables_cfg["decimals"])
@@ -163,9 +142,6 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         raise ValueError(f"config.yaml: key 'tables.main_dataset' is {main_ds!r}, which this run does not evaluate "
                          f"(datasets: {', '.join(meta_paths)})")
     main = summary.filter(pl.col("dataset") == main_ds)
-    for pre, col in EXTRA_METRICS.items():
-        more = summarize(days.filter(pl.col("dataset") == main_ds), col, f"{pre}_").drop("n_seeds")
-        main = main.join(more, on=["dataset", "method"], how="left")
     by_method = {r["method"]: r for r in main.iter_rows(named=True)}
     main_rows = [{"method": m, "class": classes[m], **{k: by_method[m][k] for k in MAIN_COLUMNS[2:]}}
                  for m in order if m in by_method]
@@ -235,7 +211,7 @@ def room_rows(summary: pl.DataFrame, room: Mapping[str, Any], datasets: list[str
     """The room a forecast could fill, per dataset and split (columns :data:`ROOM_COLUMNS`).
 
     Args:
-        summary: :func:`summarize`'s table.
+        summary: the ``summary`` view (``dswm.protocol.results_db``).
         room: ``tables.room``: ``low`` (plans on the current map), ``high`` (plans on the true future maps),
             ``fill`` (the methods whose share of the room is reported) and ``min_room`` (the smallest room whose
             share is reported: a share of a room within seed noise means nothing).
