@@ -38,7 +38,8 @@ from dswm.sim.env import synthetic_demand
 from dswm.sim.fleet import available, fleet_step
 from dswm.sim.physics import service
 from dswm.methods.dswm.planner import anchor
-from dswm.methods.dswm.training import collect, make_optimizer
+from dswm.methods.collect import collect
+from dswm.methods.dswm.training import make_optimizer
 
 
 def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, device: str,

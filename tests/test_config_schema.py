@@ -65,6 +65,12 @@ def test_the_repository_config_is_valid_and_every_level_refuses_unknown_keys(con
     (lambda c: c["search"].update(lattice=6), ["'search.lattice'", "odd integer", "found 6"]),
     (lambda c: c["dswm"]["planner"].update(sigma0_later=-0.1), ["'dswm.planner.sigma0_later'", "or null"]),
     (lambda c: c["dswm"]["planner"].pop("carry_best"), ["missing key 'dswm.planner.carry_best'"]),
+    (lambda c: c["dswm"]["training"]["collect_search"].update(lattice=4),
+     ["'dswm.training.collect_search.lattice'", "odd integer", "found 4"]),
+    (lambda c: c["methods"]["tdmpc"]["precollect"].pop("transitions"),
+     ["missing key 'methods.tdmpc.precollect.transitions'"]),
+    (lambda c: c["methods"]["tdmpc"]["budgets"]["smoke"]["precollect"].update(transitions=0),
+     ["'methods.tdmpc.budgets.smoke.precollect.transitions'", "integer >= 1"]),
 ])
 def test_bad_keys_and_values_are_named_with_the_expected_form(config, mutate, words):
     bad = copy.deepcopy(config)

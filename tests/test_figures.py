@@ -1,4 +1,7 @@
 """Figures of the results and the data: the numbers each draws (its CSV) worked out by hand, the three files."""
+import os
+import stat
+
 import polars as pl
 import pytest
 
@@ -40,6 +43,23 @@ def test_save_figure_writes_png_pdf_and_the_data_with_its_caption(tmp_path):
     assert out["csv"].read_text().splitlines()[0] == "# Paper Fig. 0 (toy): a line. (profile: smoke)"
     assert common.read_csv(out["csv"])["y"].to_list() == [1.0, 2.0]
     assert sorted(p.name for p in out["png"].parent.iterdir()) == ["toy.csv", "toy.pdf", "toy.png"]  # no temp left
+
+
+def test_figure_files_get_the_usual_permissions_and_a_failed_write_leaves_nothing(tmp_path):
+    """The figure files go through prep.atomic: umask permissions (not mkstemp's 0600) and no temp file left."""
+    mask = os.umask(0o022)
+    try:
+        fig, _ = common.plt.subplots()
+        out = common.outputs(tmp_path / "toy")
+        common.save_figure(fig, pl.DataFrame({"x": [0]}), **out, profile="smoke", source="demo", caption="c")
+    finally:
+        os.umask(mask)
+    assert {k: stat.S_IMODE(p.stat().st_mode) for k, p in out.items()} == {"png": 0o644, "pdf": 0o644, "csv": 0o644}
+    fig, _ = common.plt.subplots()
+    bad = common.outputs(tmp_path / "bad")
+    with pytest.raises(AttributeError, match="write_csv"):       # the CSV fails after the PNG and the PDF
+        common.save_figure(fig, None, **bad, profile="smoke", source="demo", caption="c")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.pdf", "bad.png", "toy.csv", "toy.pdf", "toy.png"]
 
 
 def test_main_figure_numbers_are_seed_means_and_sample_stds(tmp_path):

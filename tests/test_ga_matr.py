@@ -13,7 +13,8 @@ from dswm.methods.ga_matr import GAMATRController, GAMATRSettings
 from dswm.methods.ga_matr.happo import Learner, Rollout, gae, happo_surrogate
 from dswm.methods.ga_matr.networks import (GraphAttentionPolicy, PolicyInputs, agent_embedding_std, attention_mask,
                                            context_tokens, local_crops, log_prob, policy_inputs)
-from dswm.methods.ga_matr.training import Trainer, day_schedule, load_cv
+from dswm.methods.ga_matr.training import Trainer, load_cv
+from dswm.methods.trained import day_schedule
 from learner_checks import (DAY_IDS, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
                             check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone)
 from learner_checks import core, scenario3  # noqa: F401 (fixtures)

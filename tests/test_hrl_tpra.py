@@ -16,7 +16,8 @@ from dswm.methods.hrl_tpra.features import (FAR, Frame, compose_action, local_di
                                             slot_of)
 from dswm.methods.hrl_tpra.learner import gae, macro_targets
 from dswm.methods.hrl_tpra.pointer import PointerPlanner
-from dswm.methods.hrl_tpra.training import Trainer, day_schedule
+from dswm.methods.hrl_tpra.training import Trainer
+from dswm.methods.trained import day_schedule
 from dswm.sim.core import Grid, build_observation
 from dswm.sim.fleet import CHARGING, FleetState
 from learner_checks import (DAY_IDS, GRID, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,

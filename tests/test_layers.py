@@ -56,6 +56,78 @@ def test_the_check_sees_an_upward_import(tmp_path):
                                                      "dswm/sim/worse.py:1 imports dswm.settings"]
 
 
+SHARED_METHOD_MODULES = {
+    # the shared layer of dswm.methods: every method may import these; they import no method
+    "dswm.methods", "dswm.methods.base", "dswm.methods.registry", "dswm.methods.trained", "dswm.methods.search",
+    "dswm.methods.snapshots", "dswm.methods.collect", "dswm.methods.replay",
+    # the classical baselines double as building blocks: BatchedController (INS-WOA), the greedy pre-collection
+    "dswm.methods.classical",
+    # the RL infrastructure; its one method module, dswm.methods.rl.sb3 (ppo, sac), is not shared
+    "dswm.methods.rl", "dswm.methods.rl.spaces", "dswm.methods.rl.vec_env", "dswm.methods.rl.logger",
+    "dswm.methods.rl.common",
+}
+
+
+def method_unit(name: str) -> str | None:
+    """The method package or module that the dotted ``name`` lies in (``dswm.methods.tdmpc`` for everything under
+    it; each module of ``dswm.methods.rl`` is its own); None for the shared layer and for anything outside."""
+    parts = name.split(".")
+    if parts[:2] != ["dswm", "methods"] or len(parts) < 3:
+        return None
+    unit = ".".join(parts[:4] if parts[2] == "rl" and len(parts) > 3 else parts[:3])
+    return None if unit in SHARED_METHOD_MODULES else unit
+
+
+def method_violations(src: Path = SRC) -> list[str]:
+    """Every import by a module of ``src/methods`` of another method's package or module (a shared module may
+    import the shared layer only)."""
+    bad = []
+    for path in sorted((src / "methods").rglob("*.py")):
+        rel = path.relative_to(src.parent).with_suffix("")
+        own = method_unit(".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts))
+        for line, module, names in imports_of(path):
+            units = {method_unit(t) for t in [module] + [f"{module}.{n}" for n in names]} - {None, own}
+            if units:
+                bad.append(f"{path.relative_to(src.parent).as_posix()}:{line} imports {sorted(units)[0]}")
+    return bad
+
+
+def test_no_method_imports_another_method():
+    assert method_violations() == []
+
+
+def test_the_check_sees_a_method_importing_another(tmp_path):
+    """The test above can fail: a method importing another's module, and a shared module importing a method."""
+    for pkg in ("tdmpc", "dswm", "rl"):
+        (tmp_path / "dswm" / "methods" / pkg).mkdir(parents=True)
+    (tmp_path / "dswm" / "methods" / "tdmpc" / "agent.py").write_text(
+        "from dswm.methods.collect import collect\nfrom dswm.methods.tdmpc.model import TOLD\n\n\ndef f():\n"
+        "    from dswm.methods.dswm.training import train\n")
+    (tmp_path / "dswm" / "methods" / "tdmpc" / "replay.py").write_text("from dswm.methods import dswm\n")
+    (tmp_path / "dswm" / "methods" / "rl" / "common.py").write_text("from dswm.methods.rl.sb3 import PPOSettings\n")
+    (tmp_path / "dswm" / "methods" / "trained.py").write_text("from dswm.methods.maddpg.learner import Learner\n")
+    assert method_violations(tmp_path / "dswm") == [
+        "dswm/methods/rl/common.py:1 imports dswm.methods.rl.sb3",
+        "dswm/methods/tdmpc/agent.py:6 imports dswm.methods.dswm",
+        "dswm/methods/tdmpc/replay.py:1 imports dswm.methods.dswm",
+        "dswm/methods/trained.py:1 imports dswm.methods.maddpg"]
+
+
+def prep_violations(src: Path = ROOT / "src") -> list[str]:
+    """Every import of ``dswm`` in ``src/prep`` (the data preparation sits below the package)."""
+    return [f"{path.relative_to(src).as_posix()}:{line} imports {module}"
+            for path in sorted((src / "prep").rglob("*.py")) for line, module, _ in imports_of(path)
+            if module == "dswm" or module.startswith("dswm.")]
+
+
+def test_prep_imports_nothing_of_dswm(tmp_path):
+    assert prep_violations() == []
+    (tmp_path / "prep").mkdir()
+    (tmp_path / "prep" / "bad.py").write_text("import os\n\n\ndef f():\n    from dswm.config import ConfigError\n")
+    (tmp_path / "prep" / "worse.py").write_text("from dswm import config\n")
+    assert prep_violations(tmp_path) == ["prep/bad.py:5 imports dswm.config", "prep/worse.py:1 imports dswm"]
+
+
 def test_a_handful_of_modules_sit_directly_in_the_package():
     top = sorted(p.name for p in SRC.glob("*.py") if p.name != "__init__.py")
     assert len(top) <= 4, top
@@ -80,6 +152,6 @@ def test_one_config_error_and_no_script_reads_the_whole_config():
     defined = [f"{p.relative_to(ROOT)}" for p in [*ROOT.glob("src/**/*.py"), *ROOT.glob("audits/*.py")]
                for node in ast.walk(ast.parse(p.read_text())) if isinstance(node, ast.ClassDef)
                and node.name == "ConfigError"]
-    assert defined == ["src/dswm/config.py"]
+    assert defined == ["src/prep/typed.py"]      # below prep and dswm; dswm.config hands it to every dswm module
     readers = [p.name for p in (ROOT / "workflow" / "scripts").glob("*.py") if "snakemake.config" in p.read_text()]
     assert readers == []

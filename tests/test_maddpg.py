@@ -14,7 +14,8 @@ from dswm.methods.maddpg.learner import Inputs, Learner
 from dswm.methods.maddpg.networks import (CentralCritic, agent_spread, joint_observation, local_dim,
                                           local_observation, scale_demand)
 from dswm.methods.maddpg.replay import window_maps
-from dswm.methods.maddpg.training import Trainer, day_schedule, parallel_env
+from dswm.methods.maddpg.training import Trainer, parallel_env
+from dswm.methods.trained import day_schedule
 from learner_checks import (DAY_IDS, check_actions_bounded_and_moves_within_dmax, check_same_seed_same_actions,
                             check_save_load, check_trains_on_training_days_and_evaluates_batched_as_alone)
 from learner_checks import core, scenario3  # noqa: F401 (fixtures)

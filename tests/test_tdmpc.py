@@ -8,7 +8,8 @@ import torch
 
 from dswm.config import ConfigError
 from dswm.methods.base import DayContext
-from dswm.methods.dswm.training import collect
+from dswm.methods.collect import collect
+from dswm.methods.search import SearchSettings
 from dswm.methods.tdmpc import learner as learner_mod
 from dswm.methods.tdmpc.agent import TDMPCController, project, round_bounds
 from dswm.methods.tdmpc.learner import Learner
@@ -21,8 +22,9 @@ from dswm.sim.env import synthetic_demand
 GRID = Grid(rows=6, cols=6, cell_m=235.0)
 SLOTS = 40            # a short day keeps collection fast; every rule is the same as with 144 slots
 DAY_IDS = np.array([4, 7, 9])   # tensor day of each core day (not 0..2, so a mix-up shows)
+CHEAP = SearchSettings(sweeps=1, lattice=5, refine=0, bw_logits=())
 PRE = PreCollect(transitions=2 * (SLOTS - 1), collect_policy="lloyd", collect_parallel=2, explore_std=0.3,
-                 bw_explore_std=0.5)
+                 bw_explore_std=0.5, collect_search=CHEAP)
 BASE = dict(latent=16, hidden=32, enc_channels=4, horizon=3, n_samples=32, policy_share=0.1, n_elites=4,
             iterations=2, temperature=0.5, momentum=0.1, min_std=0.05, max_std=2.0, gamma=0.95, rho=0.5, tau=0.01,
             consistency_coef=2.0, reward_coef=0.5, value_coef=0.1, lr=1e-3, pi_lr=1e-3, grad_clip=10.0, batch=16,
@@ -57,7 +59,7 @@ def contexts(core, rows):
 @pytest.fixture(scope="module")
 def replay(scn):
     core = make_core(scn)
-    pre = collect(core, n_transitions=3 * (SLOTS - 1), cfg=PRE.train_config(), seed=0, day_ids=DAY_IDS)
+    pre = collect(core, n_transitions=3 * (SLOTS - 1), cfg=PRE, seed=0, day_ids=DAY_IDS)
     return TransitionReplay.from_precollected(pre, grid=GRID, scenario=scn)
 
 
@@ -80,17 +82,25 @@ def learner_for(scn, seed=0, **kw) -> Learner:
 
 # ----------------------------------------------------------------------------------- settings
 
-def test_settings_resolve_merges_the_budget_and_takes_dswms_precollection():
-    section = {k: v for k, v in BASE.items() if k != "precollect"}
-    config = {"methods": {"tdmpc": {**section, "budgets": {"smoke": {"steps": 12, "episodes": 1}}}},
-              "dswm": {"budgets": {"smoke": {"transitions": 1430}, "demo": {"transitions": 2860}},
-                       "training": {"collect_policy": "greedy", "collect_parallel": 5, "explore_std": 0.2,
-                                    "bw_explore_std": 0.4, "lr": 1e-3}}}
+def test_settings_resolve_merges_the_budget_and_reads_only_the_tdmpc_section():
+    section = {**BASE, "precollect": {**dataclasses.asdict(PRE), "transitions": 60000}}
+    config = {"methods": {"tdmpc": {**section, "budgets": {"smoke": {"steps": 12, "episodes": 1,
+                                                                     "precollect": {"transitions": 1430}},
+                                                           "demo": {"precollect": {"transitions": 2860}}}}}}
     s = resolve(config, profile="smoke")
     assert (s.steps, s.episodes, s.batch) == (12, 1, 16)
-    assert s.precollect == PreCollect(transitions=1430, collect_policy="greedy", collect_parallel=5, explore_std=0.2,
-                                      bw_explore_std=0.4)
+    assert s.precollect == dataclasses.replace(PRE, transitions=1430)     # the budget sets one key of precollect
     assert resolve(config, profile="demo").precollect.transitions == 2860
+    assert resolve(config, profile="paper").precollect.transitions == 60000
+    # DSWM's section is not read: its budget and its collection keys do not change TD-MPC's settings
+    with_dswm = {**config, "dswm": {"budgets": {"smoke": {"transitions": 7}}, "training": {"collect_policy": "greedy"}}}
+    assert resolve(with_dswm, profile="smoke") == s
+    missing = {"methods": {"tdmpc": {k: v for k, v in section.items() if k != "precollect"}}}
+    with pytest.raises(ConfigError, match=r"methods.tdmpc: missing key\(s\) \['precollect'\]"):
+        resolve(missing, profile="paper")
+    bad = {"methods": {"tdmpc": {**section, "precollect": {**section["precollect"], "collect_parallel": 0}}}}
+    with pytest.raises(ConfigError, match="collect_parallel >= 1"):
+        resolve(bad, profile="paper")
     assert TDMPCController.options_from_plain(name="tdmpc", data=dataclasses.asdict(s)) == s
     with pytest.raises(ConfigError, match="n_elites"):
         settings(n_elites=64)
@@ -286,7 +296,7 @@ def test_manifest_days_are_the_training_days_of_the_replays_episodes(scn, fitted
     hist = manifest["history"]
     assert hist["step"][-1] == 30 and all(len(v) == len(hist["step"]) for v in hist.values())
     # the pre-collected episodes are exactly DSWM's (same heuristic, settings and seed)
-    dswm = collect(make_core(scn), n_transitions=PRE.transitions, cfg=PRE.train_config(), seed=0, day_ids=DAY_IDS)
+    dswm = collect(make_core(scn), n_transitions=PRE.transitions, cfg=PRE, seed=0, day_ids=DAY_IDS)
     for a, b in zip(dswm.actions, rep.actions[:2], strict=False):
         assert torch.equal(a, b)
 

@@ -8,7 +8,12 @@ import yaml
 
 from dswm.sim.core import core_from_tensor
 from dswm.methods.dswm.rssm import RSSMConfig
-from dswm.methods.dswm.training import TrainConfig, collect, load_checkpoint, save_training_figure, train
+from dswm.methods.base import DayContext
+from dswm.methods.classical import GreedyController
+from dswm.methods.collect import collect
+from dswm.methods.dswm.settings import resolve
+from dswm.methods.dswm.training import TrainConfig, load_checkpoint, save_training_figure, train
+from dswm.methods.search import SearchSettings
 from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
 from prep.pipeline import generate_demo
 from prep.tensor import load
@@ -42,7 +47,9 @@ def _tiny(core, service_head="physics"):
 
 def _train_cfg(**kw):
     base = dict(lr=1e-3, batch=4, seq_len=8, grad_clip=100.0, collect_policy="lloyd", collect_parallel=2,
-                explore_std=0.3, bw_explore_std=0.5, log_points=10_000, checkpoint_every=1000)
+                explore_std=0.3, bw_explore_std=0.5, collect_search=SearchSettings(sweeps=1, lattice=5, refine=0,
+                                                                                   bw_logits=()),
+                log_points=10_000, checkpoint_every=1000)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -68,17 +75,27 @@ def test_collection_records_training_days(demo_core, replay):
     assert batch["demand"].shape == (8, 3, 7, core.grid.rows, core.grid.cols)
 
 
-def test_greedy_collection_moves_the_fleet_with_the_greedy_search(demo_core):
-    """``collect_policy: greedy`` steps the training days with the project's BCD search (one cheap sweep)."""
-    core, _ = demo_core
-    lloyd = collect(core, n_transitions=143, cfg=_train_cfg(explore_std=0.0, bw_explore_std=0.0), seed=0,
-                    day_ids=core.day_ids)
-    greedy = collect(core, n_transitions=143, cfg=_train_cfg(collect_policy="greedy", explore_std=0.0,
-                                                             bw_explore_std=0.0), seed=0, day_ids=core.day_ids)
+def test_greedy_collection_moves_the_fleet_with_the_configured_search(demo_core):
+    """``collect_policy: greedy`` steps the training days with the greedy baseline running ``collect_search``
+    (config.yaml: one sweep on a 5x5 lattice, the demand-proportional split)."""
+    core, config = demo_core
+    training = resolve(config["dswm"], method="dswm", profile="smoke", search=config["search"]).training
+    assert training.collect_search == SearchSettings(sweeps=1, lattice=5, refine=0, bw_logits=())
+    quiet = dict(explore_std=0.0, bw_explore_std=0.0, collect_search=training.collect_search)
+    lloyd = collect(core, n_transitions=143, cfg=_train_cfg(**quiet), seed=0, day_ids=core.day_ids)
+    greedy = collect(core, n_transitions=143, cfg=_train_cfg(collect_policy="greedy", **quiet), seed=0,
+                     day_ids=core.day_ids)
     assert greedy.n_transitions == lloyd.n_transitions == 143
     a, b = torch.cat(greedy.actions), torch.cat(lloyd.actions)
     assert a.shape == b.shape == (143, core.scenario.n_uavs, 3) and float(a.abs().max()) <= 1.0
     assert float((a[..., :2] - b[..., :2]).abs().max()) > 0.05  # another policy moved the fleet
+    # the first move is the greedy baseline's with the configured search
+    ctrl = GreedyController(name="greedy", options=training.collect_search)
+    ctrl.reset_batch([DayContext(dataset=core.dataset, day=0, label=core.day_labels[0], split="train", grid=core.grid,
+                                 scenario=core.scenario, geometry=core.geom, cells=core.cells,
+                                 init_pos=core.init_pos.cpu().numpy())])
+    first = ctrl.act_batch(core.reset([0]))[0]
+    np.testing.assert_allclose(greedy.actions[0][0, :, :2].numpy(), np.clip(first[:, :2], -1.0, 1.0), atol=1e-6)
 
 
 @pytest.mark.parametrize("head", ["physics", "mlp"])

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from dswm.config import ConfigError, build
+from prep.typed import ConfigError, build
 
 DATASETS = ("milan", "shanghai", "yjmob")
 

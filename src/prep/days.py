@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dswm.config import ConfigError
+from prep.typed import ConfigError
 from prep.config import EvalDays, EvalRule, Split, WeekRecovery
 from prep.rawio import PrepError, describe_files
 

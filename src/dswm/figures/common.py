@@ -1,16 +1,16 @@
 """What every figure shares: the Agg backend, the corner note, and the atomic PNG + PDF + CSV writer."""
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 import matplotlib
+import polars as pl
+
+from prep.atomic import atomic_path
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import polars as pl  # noqa: E402
 
 DPI = 150
 """Raster resolution of the PNG files (the PDF is vector)."""
@@ -34,18 +34,6 @@ def corner_note(fig, *, profile: str, source: str | Mapping[str, str]) -> None:
              color="0.35")
 
 
-def _atomic(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name + ".", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_figure(fig, data: pl.DataFrame, *, png: str | Path, pdf: str | Path, csv: str | Path, profile: str,
                 source: str | Mapping[str, str], caption: str) -> None:
     """Write ``fig`` as PNG and PDF and ``data`` (the numbers it draws) as CSV, each atomically, then close it.
@@ -58,16 +46,14 @@ def save_figure(fig, data: pl.DataFrame, *, png: str | Path, pdf: str | Path, cs
     corner_note(fig, profile=profile, source=source)
     fig.text(0.005, 0.005, caption, ha="left", va="bottom", fontsize=7, wrap=True)
     # bbox_inches="tight": the saved image grows to hold legends placed outside the axes
-    _atomic(Path(png), lambda p: fig.savefig(p, dpi=DPI, format="png", bbox_inches="tight"))
-    _atomic(Path(pdf), lambda p: fig.savefig(p, format="pdf", bbox_inches="tight"))
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=DPI, format="png", bbox_inches="tight")
+    with atomic_path(pdf) as tmp:
+        fig.savefig(tmp, format="pdf", bbox_inches="tight")
     plt.close(fig)
-
-    def write_csv(p):
-        with open(p, "w", encoding="utf-8") as fh:
-            fh.write(f"# {caption} (profile: {profile})\n")
-            data.write_csv(fh)
-
-    _atomic(Path(csv), write_csv)
+    with atomic_path(csv) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(f"# {caption} (profile: {profile})\n")
+        data.write_csv(fh)
 
 
 def read_csv(path: str | Path) -> pl.DataFrame:

@@ -1,5 +1,5 @@
-"""What the hand-written torch learners (MADDPG, GA-MATR, HRL-TPRA) share: the checkpointed training loop, the
-training manifest, the model file and the checks at reset.
+"""What the hand-written torch learners (MADDPG, GA-MATR, HRL-TPRA) share: the day schedule, the checkpointed
+training loop, the training manifest, the model file and the checks at reset.
 
 A method subclasses :class:`TrainedController` and gives it three hooks: ``make_trainer`` (its Trainer over the
 training core), ``model_state`` (the learner's weights for the model file) and ``build_learner`` (a learner with
@@ -22,6 +22,13 @@ from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
 from dswm.sim.core import Grid
 from prep.atomic import atomic_path
+
+
+def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
+    """(n_episodes,) core day of each day-episode: shuffled passes over the ``n_days`` days, drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
+    return np.concatenate(passes)[:n_episodes].astype(np.int64)
 
 
 def checkpoint_key(*, method: str, seed: int, settings: Any, core) -> dict:

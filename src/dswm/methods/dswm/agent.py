@@ -26,9 +26,10 @@ import torch
 
 from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
+from dswm.methods.collect import collect
 from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, anchor
 from dswm.methods.dswm.settings import DSWMSettings, resolve
-from dswm.methods.dswm.training import collect, save_training_figure, train
+from dswm.methods.dswm.training import save_training_figure, train
 from dswm.methods.dswm.world_model import WorldModel
 from dswm.methods.search import SearchSettings, bcd_search, to_action
 from dswm.sim.core import Grid, fleet_state_from_obs

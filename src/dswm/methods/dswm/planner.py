@@ -35,9 +35,10 @@ from typing import Callable, Literal, NamedTuple
 import torch
 
 from dswm.sim.scenario import Scenario
+from dswm.methods.collect import lloyd_step
 from dswm.methods.search import SearchSettings
 from dswm.sim.fleet import FleetState, Geometry, available, fleet_step
-from dswm.sim.physics import ServiceParams, service, sum_per_uav
+from dswm.sim.physics import ServiceParams, service
 from dswm.methods.dswm.rssm import LatentState, map_state
 
 PROPOSALS = ("none", "bcd")
@@ -162,26 +163,6 @@ def anchor(x_now: torch.Tensor, members: torch.Tensor, rho: float) -> tuple[torc
     var /= e                                                     # (N, G)
     spread = (1.0 - rho) * var.sqrt().sum(-1)                    # (N,)
     return x_hat, spread / x_hat.sum(-1).clamp_min(1e-8)
-
-
-def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: torch.Tensor,
-               d_max: float) -> torch.Tensor:
-    """Move of each UAV toward the demand-weighted centroid of the cells it serves (a Lloyd step).
-
-    Args:
-        x: (N, G) or (G,) demand; assoc: (N, G) serving UAV of each cell; pos: (N, K, 2) metres;
-        cells: (G, 2); d_max: largest displacement per slot.
-    Returns:
-        (N, K, 2) displacement as a fraction of d_max, norm at most 1 (0 for a UAV that serves no demand).
-    """
-    n, k, _ = pos.shape
-    x = x.expand(n, -1)
-    # One scatter per quantity: a scatter with an expanded (N, G, 2) index is several times slower on CPU.
-    mass = sum_per_uav(x, assoc, k)
-    wsum = torch.stack([sum_per_uav(x * cells[:, 0], assoc, k), sum_per_uav(x * cells[:, 1], assoc, k)], -1)
-    target = torch.where(mass.unsqueeze(-1) > 0, wsum / mass.clamp_min(1e-12).unsqueeze(-1), pos)
-    move = (target - pos) / d_max
-    return move / torch.linalg.vector_norm(move, dim=-1, keepdim=True).clamp_min(1.0)
 
 
 def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torch.Tensor,

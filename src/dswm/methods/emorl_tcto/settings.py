@@ -1,10 +1,11 @@
-"""EMORL-TCTO's settings (config.yaml ``methods.emorl_tcto``, one profile's budget merged in)."""
+"""EMORL-TCTO's settings (config.yaml ``methods.emorl_tcto``, one profile's budget merged in): its own and its inner
+PPO learner's (the shared :class:`dswm.methods.rl.common.PPOParams`, read from this same section)."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from typing import ClassVar, Literal
 
-from dswm.config import ConfigError
+from dswm.methods.rl.common import PPOParams
 
 SELECT_RULES = ("best_served_ratio", "max_scalarized")
 """Rules that pick the executed policy among the archive members (:func:`.archive.select_member`)."""
@@ -16,8 +17,10 @@ nothing (``EMORLTCTOController.training_settings`` leaves them out)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class EMORLTCTOSettings:
-    """Population, evolution, prediction, selection and the inner PPO learner of EMORL-TCTO."""
+class EMORLTCTOSettings(PPOParams):
+    """Population, evolution, prediction, selection and the inner PPO learner (:class:`PPOParams`) of EMORL-TCTO."""
+
+    section: ClassVar[str] = "methods.emorl_tcto"
 
     # ---- evolution ------------------------------------------------------------------------------------
     n_population: int
@@ -44,40 +47,14 @@ class EMORLTCTOSettings:
     or ``max_scalarized`` (highest select_weight . objectives); None only in a training-settings slice."""
     select_weight: tuple[float, float, float] | None
     """Weights of (served ratio, -energy, Jain) for ``max_scalarized`` (unused by ``best_served_ratio``)."""
-    # ---- inner PPO learner (Stable-Baselines3) ---------------------------------------------------------
-    n_envs: int
-    """Training days stepped together; a round is n_envs day-episodes, one PPO rollout."""
-    net_arch: tuple[int, ...]
-    """Hidden-layer widths of the actor's MLP and of the critic's (separate networks)."""
-    learning_rate: float
-    """Adam's learning rate (constant)."""
-    gamma: float
-    """Discount per slot."""
-    batch_size: int
-    """Minibatch size; divides a rollout of n_envs x 143 transitions."""
-    n_epochs: int
-    """Passes over each rollout."""
-    gae_lambda: float
-    """GAE's lambda."""
-    clip_range: float
-    """PPO's ratio clipping."""
-    ent_coef: float
-    """Weight of the entropy bonus."""
-    vf_coef: float
-    """Weight of the value loss."""
-    max_grad_norm: float
-    """Gradient-norm clipping."""
-    log_std_init: float
-    """Initial log std of the Gaussian policy (state-independent, learned)."""
+    # ---- checkpoints (the inner PPO learner's settings are PPOParams': a round is n_envs day-episodes) ------
     checkpoint_every: int
     """Tasks between checkpoints (one is also written at the end)."""
 
-    def _fail(self, key: str, expected: str) -> None:
-        raise ConfigError(f"config key methods.emorl_tcto.{key}: expected {expected}, found {getattr(self, key)!r}")
-
     def __post_init__(self):
-        for key in ("n_population", "warmup_rounds", "task_rounds", "weight_divisions", "eval_days", "n_envs",
-                    "batch_size", "n_epochs", "checkpoint_every"):
+        super().__post_init__()
+        for key in ("n_population", "warmup_rounds", "task_rounds", "weight_divisions", "eval_days",
+                    "checkpoint_every"):
             if not isinstance(getattr(self, key), int) or getattr(self, key) < 1:
                 self._fail(key, "an integer >= 1")
         if not isinstance(self.generations, int) or self.generations < 0:
@@ -86,18 +63,10 @@ class EMORLTCTOSettings:
         if self.n_population > n_weights:
             self._fail("n_population", f"at most the {n_weights} lattice weights of weight_divisions = "
                                        f"{self.weight_divisions} (one distinct warm-up weight per policy)")
-        if not self.net_arch or any(w < 1 for w in self.net_arch):
-            self._fail("net_arch", "a non-empty list of layer widths >= 1")
-        for key in ("prediction_bandwidth", "learning_rate", "clip_range", "vf_coef", "max_grad_norm"):
-            if not getattr(self, key) > 0:
-                self._fail(key, "a number > 0")
-        for key in ("prediction_ridge", "ent_coef"):
-            if not getattr(self, key) >= 0:
-                self._fail(key, "a number >= 0")
-        if not 0 < self.gamma <= 1:
-            self._fail("gamma", "a number in (0, 1]")
-        if not 0 <= self.gae_lambda <= 1:
-            self._fail("gae_lambda", "a number in [0, 1]")
+        if not self.prediction_bandwidth > 0:
+            self._fail("prediction_bandwidth", "a number > 0")
+        if not self.prediction_ridge >= 0:
+            self._fail("prediction_ridge", "a number >= 0")
         if self.select_rule is not None and self.select_rule not in SELECT_RULES:
             self._fail("select_rule", f"one of {list(SELECT_RULES)}")
         if (self.select_rule is None) != (self.select_weight is None):
@@ -105,12 +74,6 @@ class EMORLTCTOSettings:
         if self.select_weight is not None and (len(self.select_weight) != 3 or min(self.select_weight) < 0
                                                or sum(self.select_weight) <= 0):
             self._fail("select_weight", "3 numbers >= 0 with a positive sum (served ratio, -energy, Jain)")
-
-    def rollout_check(self, horizon: int) -> None:
-        """Checks that need the day's length: batch_size divides the rollout of n_envs x ``horizon`` transitions."""
-        if (self.n_envs * horizon) % self.batch_size:
-            raise ConfigError(f"config key methods.emorl_tcto.batch_size: expected a divisor of the rollout n_envs x "
-                              f"{horizon} = {self.n_envs * horizon}, found {self.batch_size}")
 
     def training(self) -> "EMORLTCTOSettings":
         """These settings without the decision-time ones (:data:`DECISION_TIME` set to None)."""

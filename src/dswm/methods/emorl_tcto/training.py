@@ -34,8 +34,8 @@ from dswm.methods.emorl_tcto.objectives import (ObjectiveVecEnv, evaluation_core
                                                 measure_objectives)
 from dswm.methods.emorl_tcto.prediction import fit_improvement, neighbour_weights, select_tasks
 from dswm.methods.emorl_tcto.settings import EMORLTCTOSettings
+from dswm.methods.rl.common import DumpEachUpdate, rng_states, set_rng_states
 from dswm.methods.rl.logger import HistoryWriter, history_logger
-from dswm.methods.rl.sb3 import DumpEachUpdate, rng_states, set_rng_states
 from prep.atomic import atomic_path
 
 MAX_HISTORY_POINTS = 200
@@ -89,12 +89,7 @@ class Evolution:
         self.eval_core = evaluation_core(core)
         draw = np.random.default_rng([seed, EVAL_STREAM])
         self.eval_days = sorted(draw.choice(core.n_days, size=min(s.eval_days, core.n_days), replace=False).tolist())
-        arch = list(s.net_arch)
-        self.worker = PPO("MlpPolicy", self.venv, seed=seed, device=device, verbose=0, learning_rate=s.learning_rate,
-                          n_steps=self.horizon, batch_size=s.batch_size, n_epochs=s.n_epochs, gamma=s.gamma,
-                          gae_lambda=s.gae_lambda, clip_range=s.clip_range, ent_coef=s.ent_coef, vf_coef=s.vf_coef,
-                          max_grad_norm=s.max_grad_norm,
-                          policy_kwargs={"net_arch": {"pi": arch, "vf": list(arch)}, "log_std_init": s.log_std_init})
+        self.worker = PPO("MlpPolicy", self.venv, seed=seed, device=device, verbose=0, **s.ppo_kwargs(self.horizon))
         self.writer = HistoryWriter()
         self.worker.set_logger(history_logger(self.writer))
         self.dumps = DumpEachUpdate(self.worker._n_updates)

@@ -3,8 +3,8 @@
 A round steps ``n_envs`` training days together through ONE ``FleetCore`` (the train rule's core, which holds the
 training days only), 143 decisions each, with actions sampled from the shared Gaussian policy (unclipped samples
 kept for the log-probabilities, clipped to [-1, 1] for the environment). The days come from a fixed schedule
-drawn from the seed: shuffled passes over the training days (:func:`day_schedule`). After each step the learner's
-reward is the environment's eq. 7 minus ``fairness_weight`` times the coefficient of variation (population std /
+drawn from the seed: shuffled passes over the training days (``dswm.methods.trained.day_schedule``). After each
+step the learner's reward is the environment's eq. 7 minus ``fairness_weight`` times the coefficient of variation (population std /
 mean) of the served load of the UAVs available in the slot (``FleetCore.uav_load``, :func:`load_cv`);
 the history keeps the environment's return apart. The day's end truncates: GAE bootstraps V(o_143) there.
 A checkpoint (weights, optimizers, value normalizer, the generator's state, counters, history) is written every
@@ -12,7 +12,6 @@ A checkpoint (weights, optimizers, value normalizer, the generator's state, coun
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +22,7 @@ from dswm.methods.ga_matr.happo import Learner, Rollout, gae
 from dswm.methods.ga_matr.networks import ACTIVE_FEATURE, PolicyInputs, context_dim, policy_inputs, uav_dim
 from dswm.methods.ga_matr.settings import GAMATRSettings
 from dswm.methods.rl.spaces import flat_observation, observation_dim
-from dswm.methods.trained import CurveLog, UnitTrainer
+from dswm.methods.trained import CurveLog, UnitTrainer, day_schedule
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "charts/entropy": "entropy",
@@ -33,13 +32,6 @@ METRICS = {"losses/policy": "policy", "losses/value": "value", "charts/entropy":
 ROUND_METRICS = ("charts/episode_return", "charts/learner_return", "charts/served_ratio", "charts/load_cv")
 """History names of the rounds' metrics: a day's summed eq.-7 reward, the same with the fairness term taken off,
 the mean SR over its decisions, and the mean coefficient of variation of the UAVs' served load per slot."""
-
-
-def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
-    """(n_episodes,) core day of each day-episode: shuffled passes over the ``n_days`` days, drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
-    return np.concatenate(passes)[:n_episodes].astype(np.int64)
 
 
 def load_cv(load: np.ndarray, available: np.ndarray) -> np.ndarray:

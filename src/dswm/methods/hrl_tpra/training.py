@@ -10,7 +10,6 @@ are the same.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,7 @@ from dswm.config import ConfigError
 from dswm.methods.hrl_tpra.features import Frame, compose_action, low_inputs, plan_inputs
 from dswm.methods.hrl_tpra.learner import Learner, Rollout
 from dswm.methods.hrl_tpra.settings import HRLTPRASettings
-from dswm.methods.trained import CurveLog, UnitTrainer
+from dswm.methods.trained import CurveLog, UnitTrainer, day_schedule
 from prep.atomic import atomic_path
 
 METRICS = {"losses/policy": "policy", "losses/value": "value", "losses/high_policy": "high_policy",
@@ -28,14 +27,6 @@ METRICS = {"losses/policy": "policy", "losses/value": "value", "losses/high_poli
 """History names of the update metrics (means over the window's rounds)."""
 EPISODE_METRICS = ("charts/episode_return", "charts/served_ratio")
 """History names of the day-episode metrics: a day's summed reward and its mean SR_{1..T-1}, over the window."""
-
-
-def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
-    """(n_episodes,) core day of each episode: shuffled passes over the ``n_days`` days, drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
-    return np.concatenate(passes)[:n_episodes].astype(np.int64)
-
 
 
 class Trainer(UnitTrainer):

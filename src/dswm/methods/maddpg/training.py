@@ -13,7 +13,6 @@ day-episodes and at the end; a run finds it and continues when its settings and 
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,7 @@ from dswm.methods.maddpg.networks import N_ACTION, scale_demand
 from dswm.methods.maddpg.replay import Replay
 from dswm.methods.maddpg.settings import MADDPGSettings
 from dswm.sim.env import UAVFleetParallelEnv
-from dswm.methods.trained import CurveLog, UnitTrainer
+from dswm.methods.trained import CurveLog, UnitTrainer, day_schedule
 from prep.atomic import atomic_path
 
 METRICS = {"losses/critic": "critic", "losses/actor": "actor", "charts/q_mean": "q",
@@ -42,14 +41,6 @@ def parallel_env(core) -> UAVFleetParallelEnv:
     return UAVFleetParallelEnv(demand=demand, grid=core.grid, scenario=core.scenario,
                                init_pos=core.init_pos.detach().cpu().numpy(), dataset=core.dataset,
                                day_labels=list(core.day_labels))
-
-
-def day_schedule(n_days: int, n_episodes: int, seed: int) -> np.ndarray:
-    """(n_episodes,) core day of each episode: shuffled passes over the ``n_days`` days, drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    passes = [rng.permutation(n_days) for _ in range(math.ceil(n_episodes / n_days))]
-    return np.concatenate(passes)[:n_episodes].astype(np.int64)
-
 
 
 class Trainer(UnitTrainer):

@@ -38,10 +38,10 @@ import stable_baselines3
 import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
 
-from dswm.config import ConfigError, stable_hash, to_plain
+from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
+from dswm.methods.rl.common import DumpEachUpdate, PPOParams, SB3Params, rng_states, set_rng_states
 from dswm.methods.rl.logger import HistoryWriter, history_logger
 from dswm.methods.rl.spaces import DEMAND_TRANSFORM, fleet_action, flat_observation, observation_dim
 from dswm.methods.rl.vec_env import FleetVecEnv
@@ -59,76 +59,29 @@ RESUME_FREE = ("day_episodes", "checkpoint_every")
 
 # ---- settings --------------------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class SB3Settings:
-    """Settings shared by the SB3 learners (config.yaml ``methods.ppo`` / ``methods.sac``)."""
+class SB3Settings(SB3Params):
+    """Settings shared by the SB3 methods (config.yaml ``methods.ppo`` / ``methods.sac``): the learner's
+    (:class:`~dswm.methods.rl.common.SB3Params`) and the budget."""
 
-    section: ClassVar[str] = "methods"
-
-    n_envs: int
-    """Training days stepped together by one core call; a round is n_envs day-episodes."""
     day_episodes: int
     """Training budget in whole day-episodes of 143 transitions, a multiple of n_envs."""
-    net_arch: tuple[int, ...]
-    """Hidden-layer widths of the actor's MLP and of each critic's (separate networks)."""
-    learning_rate: float
-    """Adam's learning rate (constant) of every network."""
-    gamma: float
-    """Discount per slot."""
-    batch_size: int
-    """Minibatch size of a gradient step."""
     checkpoint_every: int
     """Rounds between checkpoints (one is also written at the end)."""
 
-    def _fail(self, key: str, expected: str) -> None:
-        raise ConfigError(f"config key {self.section}.{key}: expected {expected}, found {getattr(self, key)!r}")
-
     def __post_init__(self):
-        for key in ("n_envs", "day_episodes", "batch_size", "checkpoint_every"):
+        super().__post_init__()
+        for key in ("day_episodes", "checkpoint_every"):
             if getattr(self, key) < 1:
                 self._fail(key, "an integer >= 1")
         if self.day_episodes % self.n_envs:
             self._fail("day_episodes", f"a multiple of n_envs = {self.n_envs} (training budgets are whole rounds)")
-        if not self.net_arch or any(w < 1 for w in self.net_arch):
-            self._fail("net_arch", "a non-empty list of layer widths >= 1")
-        if not self.learning_rate > 0:
-            self._fail("learning_rate", "a number > 0")
-        if not 0 < self.gamma <= 1:
-            self._fail("gamma", "a number in (0, 1]")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class PPOSettings(SB3Settings):
-    """PPO (``methods.ppo``): one rollout is one round, n_envs x 143 transitions; batch_size divides it."""
+class PPOSettings(SB3Settings, PPOParams):
+    """PPO (``methods.ppo``): :class:`~dswm.methods.rl.common.PPOParams` and the budget."""
 
     section: ClassVar[str] = "methods.ppo"
-
-    n_epochs: int
-    """Passes over each rollout."""
-    gae_lambda: float
-    """GAE's lambda."""
-    clip_range: float
-    """PPO's ratio clipping."""
-    ent_coef: float
-    """Weight of the entropy bonus."""
-    vf_coef: float
-    """Weight of the value loss."""
-    max_grad_norm: float
-    """Gradient-norm clipping."""
-    log_std_init: float
-    """Initial log std of the Gaussian policy (state-independent, learned)."""
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.n_epochs < 1:
-            self._fail("n_epochs", "an integer >= 1")
-        for key in ("gae_lambda",):
-            if not 0 <= getattr(self, key) <= 1:
-                self._fail(key, "a number in [0, 1]")
-        for key in ("clip_range", "vf_coef", "max_grad_norm"):
-            if not getattr(self, key) > 0:
-                self._fail(key, "a number > 0")
-        if self.ent_coef < 0:
-            self._fail("ent_coef", "a number >= 0")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -165,40 +118,6 @@ class SACSettings(SB3Settings):
             self._fail("tau", "a number in (0, 1]")
         if not self.ent_coef_init > 0:
             self._fail("ent_coef_init", "a number > 0")
-
-
-# ---- helpers ---------------------------------------------------------------------------------------------
-
-def rng_states(model: BaseAlgorithm) -> dict:
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-            "action_space": model.action_space.np_random.bit_generator.state}
-
-
-def set_rng_states(model: BaseAlgorithm, states: Mapping[str, Any]) -> None:
-    random.setstate(states["python"])
-    np.random.set_state(states["numpy"])
-    torch.set_rng_state(states["torch"])
-    if states.get("cuda") is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(states["cuda"])
-    model.action_space.np_random.bit_generator.state = states["action_space"]
-
-
-class DumpEachUpdate(BaseCallback):
-    """Dumps SB3's logger after every update, so the history averages every update's losses."""
-
-    def __init__(self, n_updates: int):
-        super().__init__(verbose=0)
-        self.seen = n_updates
-
-    def flush(self, model: BaseAlgorithm) -> None:
-        if model._n_updates != self.seen:
-            model.logger.dump(model.num_timesteps)
-            self.seen = model._n_updates
-
-    def _on_step(self) -> bool:
-        self.flush(self.model)
-        return True
 
 
 # ---- controllers -----------------------------------------------------------------------------------------
@@ -401,18 +320,10 @@ class PPOController(SB3Controller):
     options_type = PPOSettings
 
     def check_fit(self, horizon: int) -> None:
-        s = self.options
-        if (s.n_envs * horizon) % s.batch_size:
-            raise ConfigError(f"config key {s.section}.batch_size: expected a divisor of the rollout n_envs x "
-                              f"{horizon} = {s.n_envs * horizon}, found {s.batch_size}")
+        self.options.rollout_check(horizon)
 
     def algorithm_kwargs(self, horizon: int) -> dict:
-        s = self.options
-        arch = list(s.net_arch)
-        return {"learning_rate": s.learning_rate, "n_steps": horizon, "batch_size": s.batch_size,
-                "n_epochs": s.n_epochs, "gamma": s.gamma, "gae_lambda": s.gae_lambda, "clip_range": s.clip_range,
-                "ent_coef": s.ent_coef, "vf_coef": s.vf_coef, "max_grad_norm": s.max_grad_norm,
-                "policy_kwargs": {"net_arch": {"pi": arch, "vf": list(arch)}, "log_std_init": s.log_std_init}}
+        return self.options.ppo_kwargs(horizon)
 
     def gradient_steps(self, model: BaseAlgorithm) -> int:
         """SB3 counts epochs in ``_n_updates``; each epoch is rollout / batch_size minibatch steps."""

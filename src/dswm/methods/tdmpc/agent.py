@@ -1,9 +1,10 @@
-"""TD-MPC's controller: training on TRAINING days (DSWM's pre-collection plus its own interaction) and MPPI at
+"""TD-MPC's controller: training on TRAINING days (a heuristic pre-collection plus its own interaction) and MPPI at
 decision time.
 
 ``fit``:
-1. DSWM's pre-collection (``dswm.methods.dswm.training.collect``, DSWM's heuristic and size, the same seed), with
-   the rewards of its transitions recomputed (``TransitionReplay.from_precollected``);
+1. the pre-collection (``dswm.methods.collect.collect`` with ``methods.tdmpc.precollect``, by choice DSWM's
+   heuristic and size, the same seed), with the rewards of its transitions recomputed
+   (``TransitionReplay.from_precollected``);
 2. ``seed_steps`` gradient steps on it;
 3. ``episodes`` own day-episodes on the training days (round-robin after the pre-collection's), ``parallel`` at a
    time, acting by MPPI with its final std as noise (or the policy plus noise), each round followed by an equal
@@ -27,9 +28,8 @@ import numpy as np
 import torch
 
 from dswm.config import stable_hash, to_plain
-from dswm.methods.base import Controller, DayContext
-from dswm.methods.base import training_inputs_hash
-from dswm.methods.dswm.training import collect
+from dswm.methods.base import Controller, DayContext, training_inputs_hash
+from dswm.methods.collect import collect
 from dswm.methods.tdmpc.learner import METRICS, Learner
 from dswm.methods.tdmpc.model import TOLD
 from dswm.methods.tdmpc.planner import mppi
@@ -77,7 +77,7 @@ class TDMPCController(Controller):
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> TDMPCSettings:
-        """``methods.<name>`` with its profile budget, and DSWM's pre-collection (``dswm.methods.tdmpc.settings``)."""
+        """``methods.<name>`` with its profile budget (``dswm.methods.tdmpc.settings``)."""
         return resolve(config, name=name, profile=profile)
 
     def settings_hash(self) -> str:
@@ -136,7 +136,7 @@ class TDMPCController(Controller):
         run_dir.mkdir(parents=True, exist_ok=True)
         day_ids = np.asarray(getattr(train_core, "day_ids", range(train_core.n_days)), dtype=np.int64)
         torch.manual_seed(self.seed)
-        pre = collect(train_core, n_transitions=s.precollect.transitions, cfg=s.precollect.train_config(),
+        pre = collect(train_core, n_transitions=s.precollect.transitions, cfg=s.precollect,
                       seed=self.seed, day_ids=day_ids)
         replay = TransitionReplay.from_precollected(pre, grid=train_core.grid, scenario=train_core.scenario)
         self.model = self._build_model(train_core.grid, train_core.scenario)

@@ -1,7 +1,7 @@
-"""TD-MPC's replay: DSWM's episode replay (``SequenceReplay``) plus each transition's reward and termination flag,
+"""TD-MPC's replay: the shared episode replay (``dswm.methods.replay.SequenceReplay``) plus each transition's reward and termination flag,
 sampled as windows of H+1 consecutive observations of one day.
 
-DSWM's pre-collection stores fleets, actions and served ratios but not rewards; the reward of each of its
+The pre-collection stores fleets, actions and served ratios but not rewards; the reward of each of its
 transitions is recomputed exactly as the environment computes it (paper eq. 7, :func:`episode_rewards`): the
 fleet energy of the slot from ``dswm.sim.fleet.fleet_step`` on the recorded state and action, the served ratio as
 recorded. A day's last transition is TRUNCATED, never terminated (``FleetCore.step``): its flag is False and its
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dswm.methods.dswm.replay import SequenceReplay
+from dswm.methods.replay import SequenceReplay
 from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.energy import hover_power
 from dswm.sim.fleet import fleet_step
@@ -48,12 +48,12 @@ class TransitionReplay(SequenceReplay):
         self.grid, self.scenario = grid, scenario
         self.rewards: list[torch.Tensor] = []      # (T,)
         self.terminated: list[torch.Tensor] = []   # (T,) bool
-        self.own: list[bool] = []                  # False: DSWM's pre-collection; True: TD-MPC's own episode
+        self.own: list[bool] = []                  # False: the pre-collection; True: TD-MPC's own episode
         self._stacked = None
 
     @classmethod
     def from_precollected(cls, replay: SequenceReplay, *, grid, scenario) -> "TransitionReplay":
-        """DSWM's pre-collected episodes, in their order, with their rewards recomputed (:func:`episode_rewards`)."""
+        """The pre-collected episodes, in their order, with their rewards recomputed (:func:`episode_rewards`)."""
         out = cls(grid=grid, scenario=scenario, demand=replay.demand.numpy(), day_ids=replay.day_ids)
         for row, fl, act, sr in zip(replay.rows, replay.fleet, replay.actions, replay.next_sr):
             out.add_episode(row=row, fleet=fl.numpy(), actions=act.numpy(), next_sr=sr.numpy(), own=False)

@@ -1,8 +1,9 @@
 """TD-MPC's typed settings (config.yaml ``methods.tdmpc``, its ``budgets.<profile>`` merged over it).
 
-The pre-collection is DSWM's (``PreCollect``): its size and its heuristic come from config.yaml's ``dswm`` section
-(``dswm.budgets.<profile>.transitions`` and the collection keys of ``dswm.training``), so TD-MPC starts from the very
-transitions DSWM pre-collects with the same seed and adds its own interaction to them.
+The pre-collection (``methods.tdmpc.precollect``, :class:`PreCollect`) runs the collection DSWM's world model starts
+from too (``dswm.methods.collect``); its values equal ``dswm.training``'s and ``dswm.budgets.<profile>.transitions``
+by choice, so TD-MPC starts from the very transitions DSWM pre-collects with the same seed, but they are TD-MPC's own
+keys: changing DSWM's budget does not change TD-MPC's.
 """
 from __future__ import annotations
 
@@ -10,40 +11,22 @@ import dataclasses
 from typing import Any, Literal, Mapping
 
 from dswm.config import ConfigError, build, merge
-from dswm.methods.dswm.training import COLLECT_POLICIES, TrainConfig
+from dswm.methods.collect import CollectSettings
 from dswm.methods.tdmpc.planner import MPPIConfig
-
-PRECOLLECT_KEYS = ("collect_policy", "collect_parallel", "explore_std", "bw_explore_std")
-"""The keys of ``dswm.training`` that ``dswm.methods.dswm.training.collect`` reads."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class PreCollect:
-    """DSWM's pre-collection (filled from config.yaml ``dswm``; not a key of ``methods.tdmpc``)."""
+class PreCollect(CollectSettings):
+    """TD-MPC's pre-collection (config.yaml ``methods.tdmpc.precollect``): the collection's settings and its size."""
 
     transitions: int
-    """Decisions pre-collected (``dswm.budgets.<profile>.transitions``), rounded up to whole days."""
-    collect_policy: str
-    """DSWM's heuristic ("lloyd" or "greedy", ``dswm.training.collect_policy``)."""
-    collect_parallel: int
-    """Training days stepped together (``dswm.training.collect_parallel``)."""
-    explore_std: float
-    """Noise on the heuristic's moves (``dswm.training.explore_std``)."""
-    bw_explore_std: float
-    """Std of the bandwidth logits (``dswm.training.bw_explore_std``)."""
+    """Decisions pre-collected, rounded up to whole days."""
 
     def __post_init__(self):
-        if self.transitions < 1 or self.collect_parallel < 1 or self.explore_std < 0 or self.bw_explore_std < 0 \
-                or self.collect_policy not in COLLECT_POLICIES:
-            raise ConfigError(f"config key dswm (TD-MPC's pre-collection): expected transitions and collect_parallel "
-                              f">= 1, stds >= 0 and collect_policy in {COLLECT_POLICIES}; found "
-                              f"{dataclasses.asdict(self)}")
-
-    def train_config(self) -> TrainConfig:
-        """A ``TrainConfig`` for ``collect``: the collection keys are DSWM's; ``collect`` reads no other key, so the
-        optimization keys hold placeholders."""
-        return TrainConfig(lr=0.0, batch=1, seq_len=1, grad_clip=0.0, log_points=1, checkpoint_every=1,
-                           **{k: getattr(self, k) for k in PRECOLLECT_KEYS})
+        if self.transitions < 1:
+            raise ConfigError(f"config key methods.tdmpc.precollect.transitions: expected an integer >= 1, found "
+                              f"{self.transitions}")
+        super().__post_init__()
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -115,7 +98,7 @@ class TDMPCSettings:
     checkpoint_every: int
     """Gradient steps between complete checkpoints (every round's end and the last step write one too)."""
     precollect: PreCollect
-    """DSWM's pre-collection (config.yaml ``dswm``)."""
+    """The pre-collected transitions the training starts from."""
 
     def __post_init__(self):
         counts = ("latent", "hidden", "enc_channels", "horizon", "n_samples", "n_elites", "iterations", "batch",
@@ -151,10 +134,11 @@ class TDMPCSettings:
 
 
 def resolve(config: Mapping[str, Any], *, name: str = "tdmpc", profile: str) -> TDMPCSettings:
-    """``methods.<name>`` merged with its ``budgets.<profile>``, plus DSWM's pre-collection under ``profile``.
+    """``methods.<name>`` merged with its ``budgets.<profile>`` (mappings key by key, so a budget may set
+    ``precollect.transitions`` alone).
 
     Raises:
-        ConfigError: a missing section or profile, an unknown, missing or mistyped key, or a value out of range.
+        ConfigError: a missing section, an unknown, missing or mistyped key, or a value out of range.
     """
     where = f"methods.{name}"
     section = config["methods"].get(name)
@@ -162,16 +146,7 @@ def resolve(config: Mapping[str, Any], *, name: str = "tdmpc", profile: str) -> 
         raise ConfigError(f"config.yaml: key '{where}' must be a mapping of TD-MPC's settings; found {section!r}")
     section = dict(section)
     budgets = section.pop("budgets", None) or {}
-    if "precollect" in section:
-        raise ConfigError(f"config.yaml: key '{where}.precollect' is not set here: TD-MPC pre-collects what DSWM "
-                          f"does (dswm.training and dswm.budgets.<profile>.transitions)")
     if profile in budgets:
         section = merge(section, budgets[profile])
         where = f"{where} (with {where}.budgets.{profile})"
-    dswm = config["dswm"]
-    if profile not in dswm["budgets"]:
-        raise ConfigError(f"config.yaml: key 'dswm.budgets' has no entry {profile!r} (TD-MPC pre-collects DSWM's "
-                          f"transitions; found {sorted(dswm['budgets'])})")
-    pre = {"transitions": dswm["budgets"][profile]["transitions"],
-           **{k: dswm["training"][k] for k in PRECOLLECT_KEYS}}
-    return build(TDMPCSettings, {**section, "precollect": pre}, where)
+    return build(TDMPCSettings, section, where)

@@ -1,4 +1,5 @@
-"""Episode replay of pre-collected TRAINING-day transitions, sampled as fixed-length sequences.
+"""Episode replay of pre-collected TRAINING-day transitions, sampled as fixed-length sequences (DSWM's world model
+trains on it; TD-MPC's ``TransitionReplay`` extends it with rewards).
 
 Demand maps are not copied per step: the buffer holds the training demand tensor once and indexes it by
 (day row, slot), building each observation window x_{t-w..t} with the environment's rule (edge-padded with the
