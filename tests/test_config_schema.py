@@ -99,8 +99,8 @@ def test_settings_are_typed_and_come_back_from_their_plain_form(config):
     assert s.methods["dswm_wo_unc"].options.planner.lambda_u == 0.0
     assert s.display.progress_mininterval_s == config["evaluation"]["progress_mininterval_s"]
     back = runconfig.Settings.from_plain(runconfig.audit_slice(s))
-    # the audit reads no figure setting and no scheduler request
-    assert back == dataclasses.replace(s, display=None, selection=None, figures=None, resources=None)
+    # the audit reads no figure setting, no scheduler request and no tracking setting
+    assert back == dataclasses.replace(s, display=None, selection=None, figures=None, resources=None, mlflow=None)
     sel = runconfig.select_slice(s)["selection"]
     assert runconfig.build(runconfig.SelectionSettings, sel, "selection") == s.selection
 

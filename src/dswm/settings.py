@@ -379,7 +379,8 @@ class Settings:
     calibration: CalibrationSettings
     selection: SelectionSettings | None
     """None in the audit's slice (the audit reads no selection)."""
-    mlflow: MlflowSettings
+    mlflow: MlflowSettings | None
+    """None in the audit's slice (where a run is logged changes no result the audit checks)."""
     tables: TablesSettings
     figures: FiguresSettings | None = None
     """None in a job's slice that reads no figure setting (the audit's)."""
@@ -667,8 +668,24 @@ def eda_slice(settings: Settings) -> dict:
 
 
 def mlflow_slice(settings: Settings) -> dict:
-    """What the ``mlflow_init`` job reads."""
-    return to_plain(settings.mlflow)
+    """The rerun trigger of the ``mlflow_init`` job: the experiment's name (:func:`experiment_slice`). Where it creates
+    the store and the experiment (``tracking_uri`` or ``store``, ``artifacts``) and how it asks a server (``http``)
+    travel beside it (:func:`tracking`): a new store or server reruns no job, the workflow's ``onstart`` creates
+    them there before any job logs."""
+    return experiment_slice(settings)
+
+
+def experiment_slice(settings: Settings) -> dict:
+    """The part of ``mlflow`` in the slice of a job that logs a run: the experiment's name alone (a renamed
+    experiment receives every job's run again). The rest of the section travels beside the slice as
+    :func:`tracking`, so a change of the server, the store, the batch size or the HTTP retries reruns no job."""
+    return {"experiment": settings.mlflow.experiment}
+
+
+def tracking(settings: Settings) -> "Untracked":
+    """The whole ``mlflow`` section, plain, as an :class:`Untracked` param (``params.tracking``): where and how a job
+    logs its run, never what it computes."""
+    return Untracked(to_plain(settings.mlflow))
 
 
 def calibrate_slice(settings: Settings) -> dict:
@@ -681,14 +698,14 @@ def calibrate_slice(settings: Settings) -> dict:
 
 def train_slice(settings: Settings, method: str, dataset: str | None = None, seed: int | None = None) -> dict:
     """What a ``train`` job of ``method`` reads: the profile, the scenario, the device and threads
-    (:class:`Runtime`), MLflow, and the method with only its training settings (so decision-time settings never
-    retrain); for a job of the sample-efficiency probe (:func:`probe_jobs`, given its ``dataset`` and ``seed``)
-    also ``snapshots``: {"fractions": ``figures.sample_efficiency.fractions``}."""
+    (:class:`Runtime`), the MLflow experiment (:func:`experiment_slice`), and the method with only its training
+    settings (so decision-time settings never retrain); for a job of the sample-efficiency probe (:func:`probe_jobs`,
+    given its ``dataset`` and ``seed``) also ``snapshots``: {"fractions": ``figures.sample_efficiency.fractions``}."""
     m = settings.methods[method]
     cls = m.controller_class
     entry = dataclasses.replace(m, options=cls.training_settings(m.options))
     job = {"profile": settings.profile, "scenario": to_plain(settings.scenario), "runtime": runtime(settings),
-           "mlflow": to_plain(settings.mlflow), "method": to_plain(entry)}
+           "mlflow": experiment_slice(settings), "method": to_plain(entry)}
     if dataset is not None and seed is not None and (dataset, method, int(seed)) in probe_jobs(settings):
         job["snapshots"] = {"fractions": list(settings.figures.sample_efficiency.fractions)}
     return job
@@ -696,10 +713,10 @@ def train_slice(settings: Settings, method: str, dataset: str | None = None, see
 
 def evaluate_slice(settings: Settings, method: str) -> dict:
     """What an ``evaluate`` job of ``method`` reads: the profile, the day limits, the scenario, the evaluation
-    settings, MLflow, and the method with all its settings."""
+    settings, the MLflow experiment (:func:`experiment_slice`), and the method with all its settings."""
     return {"profile": settings.profile, "eval_days": to_plain(settings.run.eval_days),
             "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
-            "mlflow": to_plain(settings.mlflow), "method": to_plain(settings.methods[method])}
+            "mlflow": experiment_slice(settings), "method": to_plain(settings.methods[method])}
 
 
 def tables_slice(settings: Settings) -> dict:
@@ -709,8 +726,10 @@ def tables_slice(settings: Settings) -> dict:
 
 
 def audit_slice(settings: Settings) -> dict:
-    """What the audit reads: every setting but the display ones and the selection's."""
-    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None, resources=None))
+    """What the audit reads: every setting but the display ones, the selection's, the figures', the resources and
+    MLflow's (the audit reads files, never the tracking store)."""
+    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None, resources=None,
+                                        mlflow=None))
 
 
 def select_slice(settings: Settings) -> dict:
@@ -880,5 +899,6 @@ def probe_slice(settings: Settings, method: str) -> dict:
 
 def figures_slice(settings: Settings) -> dict:
     """What a figure job of the results reads: the tables' slice (profile, tables, datasets, the methods' rows),
-    MLflow (the runs its figure is attached to) and the ``figures`` section."""
-    return {**tables_slice(settings), "mlflow": to_plain(settings.mlflow), "figures": to_plain(settings.figures)}
+    the MLflow experiment (the runs its figure is attached to; :func:`experiment_slice`) and the ``figures``
+    section."""
+    return {**tables_slice(settings), "mlflow": experiment_slice(settings), "figures": to_plain(settings.figures)}

@@ -29,6 +29,9 @@ TRAINED = SETTINGS.trained()
 TRAINED_PATTERN = "|".join(TRAINED) or "(?!)"
 """The `train` rule's method constraint: a model.pt of a method that shares a training cannot be requested."""
 DISPLAY = SETTINGS.display
+TRACKING = S.tracking(SETTINGS)
+"""``params.tracking`` of every job that logs to MLflow: the ``mlflow`` section, Untracked. Where and how a run is
+logged (server or store, batch size, HTTP retries) reruns no job; the experiment's name is in the jobs' slices."""
 INTENSITY = S.intensity_inputs(SETTINGS)
 """`{"intensity": <the calibrate rule's record>}` when scenario.demand_intensity is `calibrate`, else `{}`: an input
 of every job that reads u (select, train, evaluate, audit_report), which takes u from it. A new record reruns
@@ -131,9 +134,7 @@ def figure_outputs(name, category, subcategory=None):
 def figure_attach(stages, datasets=None, methods=None):
     """``params.attach`` of a figure rule: the FINISHED MLflow runs its PNG and PDF are logged beside, those of
     ``stages`` restricted to ``datasets`` and ``methods`` (None: any) of this profile
-    (dswm.pipeline.tracking.attach_figure_outputs)."""
-    from dswm.config import to_plain
-
-    return S.param({"mlflow": to_plain(SETTINGS.mlflow), "profile": PROFILE, "stages": list(stages),
-                    "datasets": None if datasets is None else list(datasets),
-                    "methods": None if methods is None else list(methods)})
+    (dswm.pipeline.tracking.attach_figure_outputs). Untracked: which runs show a figure changes no figure."""
+    return S.Untracked({"mlflow": TRACKING.value, "profile": PROFILE, "stages": list(stages),
+                        "datasets": None if datasets is None else list(datasets),
+                        "methods": None if methods is None else list(methods)})

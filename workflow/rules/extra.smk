@@ -64,6 +64,7 @@ rule extra_train:
         manifest=EXTRA_DIR + "/train_manifest.json",
     params:
         settings=lambda wc: S.param(S.variant_train_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        tracking=TRACKING,
         run_dir=lambda wc: EXTRA_DIR.format(**dict(wc.items())) + "/train",
     log:
         "logs/extra_train/{dataset}/{variant}/{method}/seed{seed}.log",
@@ -92,6 +93,7 @@ rule extra_evaluate:
         record=EXTRA_DIR + "/eval_manifest.json",  # SHA-256 and size of the two files above, written last
     params:
         settings=lambda wc: S.param(S.variant_evaluate_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        tracking=TRACKING,
         display=S.Untracked(DISPLAY),
     log:
         "logs/extra_evaluate/{dataset}/{variant}/{method}/seed{seed}.log",

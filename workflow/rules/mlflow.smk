@@ -5,7 +5,8 @@ rule mlflow_init:
     output:
         marker="results/mlflow/experiment.json",
     params:
-        settings=S.param(S.mlflow_slice(SETTINGS)),
+        settings=S.param(S.mlflow_slice(SETTINGS)),  # the experiment's name: a new one reruns every logging job
+        tracking=TRACKING,  # where the store is and how a server is asked: reruns nothing (see onstart)
     log:
         "logs/mlflow_init.log",
     threads: 1
@@ -19,10 +20,14 @@ rule mlflow_init:
 # (Snakemake's lock keeps two workflows out of one working directory): it is ended KILLED here, so the store never
 # shows a run as live that nothing is running. Runs of interrupted jobs that got SIGTERM or SIGINT are ended FAILED
 # by the job itself. On a shared tracking server, other working directories' runs are left alone.
+# `mlflow_init` does not rerun when the store, the server or the artifact location change (a result does not depend
+# on where its run is logged), so before any job starts, the store and the experiment of the current settings are
+# made to exist here (idempotent) once `mlflow_init` has run; a job that logs then finds them wherever they now are.
 onstart:
-    from dswm.config import to_plain
-    from dswm.pipeline.tracking import close_orphans
+    from dswm.pipeline.tracking import close_orphans, ensure_store
 
-    _closed = close_orphans(mlflow_cfg=to_plain(SETTINGS.mlflow))
+    if Path(rules.mlflow_init.output.marker).exists():  # else mlflow_init creates them before any job logs
+        ensure_store(TRACKING.value)
+    _closed = close_orphans(mlflow_cfg=TRACKING.value)
     if _closed:
         print(f"MLflow: {_closed} run(s) left RUNNING by an earlier, killed workflow are now KILLED", file=sys.stderr)

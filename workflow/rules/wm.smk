@@ -55,6 +55,7 @@ if WM_METHOD in TRAINED:
             settings=S.param({**S.evaluate_slice(SETTINGS, WM_METHOD),
                               "wm_quality": to_plain(FIGURES_SETTINGS.wm_quality),
                               "replay_days": to_plain(FIGURES_SETTINGS.eval_days)}),
+            tracking=TRACKING,
             display=S.Untracked(DISPLAY),
         log:
             "logs/wm/{dataset}/seed{seed}.log",
