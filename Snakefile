@@ -38,7 +38,7 @@ workflow.localrules("tables", "build_tables", "figures", *[r.name for r in workf
 
 
 # A rule that `resources.rules` names must exist: a misspelled rule would silently keep the default resources.
-_unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules})
+_unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules} - CONDITIONAL_RULES)
 if _unknown:
     raise WorkflowError(f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule "
                         f"of this workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})")

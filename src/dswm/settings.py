@@ -737,12 +737,15 @@ def select_slice(settings: Settings) -> dict:
     planner method with all its settings.
 
     Raises:
-        ConfigError: ``selection.planner_method`` is not in ``methods.run``.
+        ConfigError: ``selection.planner_method`` is not in ``methods.run``. Only the ``select`` rule needs it, so
+            the rule builds this slice when its job is built (every other target runs without it).
     """
     name = settings.selection.planner_method
     if name not in settings.methods:
         raise ConfigError(f"config.yaml: key 'selection.planner_method' is {name!r}, which 'methods.run' does not "
-                          f"list (found {', '.join(settings.methods)})")
+                          f"list (found {', '.join(settings.methods)}); the select target chooses that method's "
+                          f"planner values: add {name!r} to 'methods.run', or name a planner method of it in "
+                          f"'selection.planner_method'")
     return {"profile": settings.profile, "selection": to_plain(settings.selection),
             "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
             "method": to_plain(settings.methods[name])}

@@ -108,6 +108,11 @@ def reference_meta(dataset):
     return reference_input(SETTINGS.datasets.common, dataset)
 
 
+CONDITIONAL_RULES = set()
+"""Rules a rule file defines only under some settings (e.g. when DSWM is evaluated): a name `resources.rules` may
+give even when the current settings leave the rule out (Snakefile)."""
+
+
 # ---- figures (workflow/rules/figures.smk and the rule files of the extra runs) ----
 FIGURES_SETTINGS = SETTINGS.figures
 """config.yaml ``figures`` merged with ``figures.budgets.<profile>``."""
