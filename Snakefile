@@ -37,6 +37,10 @@ workflow.default_target = "tables"
 workflow.localrules("tables", "build_tables", "figures", *[r.name for r in workflow.rules if r.name.startswith("figure_")])
 
 
+# No file stands where a rule writes (a file named results/tables): named here, before any DAG is built.
+check_output_paths()
+
+
 # A rule that `resources.rules` names must exist: a misspelled rule would silently keep the default resources.
 _unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules} - CONDITIONAL_RULES)
 if _unknown:

@@ -58,6 +58,49 @@ def job_resources(rule, method=None):
     return out
 
 
+def write_obstacles_message(writers, files_only=False):
+    """The error of the paths in the way of ``writers`` ({a path the workflow writes: the rules writing it}), one
+    line per obstacle (prep.atomic.write_obstacles; with ``files_only``, files in the way alone); "" when none."""
+    from prep.atomic import write_obstacles
+
+    lines = []
+    for found, (why, dirs) in write_obstacles(writers).items():
+        if files_only and found.is_dir():
+            continue
+        rules_ = sorted({r for d in dirs for path, names in writers.items() if Path(path).parent == d for r in names})
+        shown = ", ".join(map(str, dirs[:3])) + (f" and {len(dirs) - 3} more" if len(dirs) > 3 else "")
+        fix = "move the file away" if why.startswith("a file") else f"make {found} writable"
+        lines.append(f"{found} is {why}: the outputs of {', '.join(rules_)} cannot be written in {shown}; nothing "
+                     f"was run ({fix} and run again)")
+    return "\n".join(lines)
+
+
+def check_output_paths():
+    """At parse time (end of the Snakefile): no file stands where a rule writes a directory (results/tables a
+    file): Snakemake would stop on it with a raw error while it builds any DAG that touches that directory."""
+    writers = {}
+    for r in workflow.rules:
+        for path in [*r.output, *r.log]:
+            static = str(path).split("{", 1)[0]
+            writers.setdefault(str(Path(static) / "-") if static != str(path) else str(path), set()).add(r.name)
+    message = write_obstacles_message(writers, files_only=True)
+    if message:
+        raise WorkflowError(message)
+
+
+def check_outputs_writable():
+    """As the workflow starts (onstart, before any job): every directory the jobs about to run write their outputs
+    and logs into can take a file. Else the run stops here, naming the directory and the rules, rather than when
+    the first job that writes there ends (`build_tables` comes after every evaluation)."""
+    writers = {}
+    for job in workflow.dag.needrun_jobs():
+        for path in [*job.output, *job.log]:
+            writers.setdefault(str(path), set()).add(job.rule.name)
+    message = write_obstacles_message(writers)
+    if message:
+        raise WorkflowError(message)
+
+
 def learns(method):
     """True for methods trained by the `train` rule before evaluation."""
     return method in SETTINGS.methods and SETTINGS.methods[method].learns

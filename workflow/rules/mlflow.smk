@@ -23,8 +23,11 @@ rule mlflow_init:
 # `mlflow_init` does not rerun when the store, the server or the artifact location change (a result does not depend
 # on where its run is logged), so before any job starts, the store and the experiment of the current settings are
 # made to exist here (idempotent) once `mlflow_init` has run; a job that logs then finds them wherever they now are.
+# The one onstart handler of the workflow also checks, first, that every output directory can be written.
 onstart:
     from dswm.pipeline.tracking import close_orphans, ensure_store
+
+    check_outputs_writable()
 
     if Path(rules.mlflow_init.output.marker).exists():  # else mlflow_init creates them before any job logs
         ensure_store(TRACKING.value)
