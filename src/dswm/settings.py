@@ -14,6 +14,7 @@ Snakemake does not compare, so changing them reruns nothing (docs/PIPELINE.md).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import json
@@ -24,7 +25,7 @@ from typing import Any, Iterable, Mapping
 import jsonschema
 import yaml
 
-from dswm.config import ConfigError, build, canonical_json, merge, stable_hash, to_plain
+from dswm.config import ConfigError, ConfigSources, build, canonical_json, lookup, merge, stable_hash, to_plain
 from dswm.methods import registry
 from dswm.methods.search import SearchSettings
 from dswm.sim.scenario import CALIBRATE, Scenario
@@ -84,18 +85,66 @@ def _message(err: jsonschema.ValidationError, source: str) -> str:
     return f"{source}: key '{where}' must be {_describe(err.schema)}; found {err.instance!r}"
 
 
-def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml") -> None:
+def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml",
+                    sources: ConfigSources | None = None) -> None:
     """Check ``config`` against the schema; raise ConfigError listing every violation, one per line.
 
     Args:
-        config: the parsed config.yaml (with any ``--config`` overrides applied).
+        config: the parsed config.yaml (with any ``--configfile`` and ``--config`` overrides applied).
         schema: the parsed workflow/schemas/config.schema.yaml.
         source: file name used in messages.
+        sources: where each value came from (:class:`dswm.config.ConfigSources`); each line then names the layer
+            of its key instead of ``source``, and a string that ``--config`` passed says so.
     """
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)), e.message))
-    if errors:
-        raise ConfigError("invalid configuration:\n" + "\n".join(_message(e, source) for e in errors))
+    if not errors:
+        return
+    lines = []
+    for err in errors:
+        line = _message(err, source)
+        if sources is not None:
+            line = sources.relabel(line)
+            if isinstance(err.instance, str) and sources.of(list(err.absolute_path)) == ConfigSources.CLI:
+                line += (f" (--config passed it as the string {err.instance!r}: Snakemake reads a value nested in "
+                         f"--config as a string, taken here as a number, boolean or null only where the schema "
+                         f"expects one)")
+        lines.append(line)
+    raise ConfigError("invalid configuration:\n" + "\n".join(lines))
+
+
+def coerce_cli_strings(config: Mapping[str, Any], schema: Mapping[str, Any], cli: Mapping[str, Any]) -> dict:
+    """``config`` with each string that ``--config`` passed inside a mapping (Snakemake reads nested values as
+    strings: ``scenario={"n_uavs": 3}`` arrives as ``{"n_uavs": "3"}``) read as YAML where the schema refuses the
+    string and YAML reads it as a number, a boolean or null; every other value as it is.
+
+    Args:
+        config: the merged config.
+        schema: the JSON schema.
+        cli: the ``--config`` overrides (``workflow.config_settings.config``).
+    """
+    out = copy.deepcopy(dict(config))
+    validator = jsonschema.Draft202012Validator(schema)
+    while True:
+        changed = False
+        for err in validator.iter_errors(out):
+            path = list(err.absolute_path)
+            given, value = lookup(cli, path)
+            if len(path) < 2 or not given or not isinstance(value, str) or err.instance != value:
+                continue
+            try:
+                read = yaml.safe_load(value)
+            except yaml.YAMLError:
+                continue
+            if read is not None and not isinstance(read, (bool, int, float)):
+                continue
+            node = out
+            for part in path[:-1]:
+                node = node[part]
+            node[path[-1]] = read
+            changed = True
+        if not changed:
+            return out
 
 
 SCHEMA = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
@@ -461,21 +510,38 @@ def _methods(config: Mapping[str, Any], profile: str) -> dict[str, MethodSetting
             for n, (s, cls, opt) in found.items()}
 
 
-def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
-            schema: str | Path | None = None) -> Settings:
-    """Validate config.yaml (with any ``--config`` overrides) and resolve it into one typed :class:`Settings`.
+def resolve(config: Mapping[str, Any], *, root: str | Path | None = None, schema: str | Path | None = None,
+            sources: ConfigSources | None = None) -> Settings:
+    """Validate config.yaml (with any ``--configfile`` and ``--config`` overrides) and resolve it into one typed
+    :class:`Settings`.
 
     Args:
         config: the parsed config mapping.
         root: where ``datasets.<name>.raw_files`` are looked up; None skips that check (a job's own files).
         schema: the JSON schema (default :data:`SCHEMA`).
+        sources: where each value came from (config.yaml, a ``--configfile``, ``--config``); messages name it, and
+            the strings ``--config`` passed are read as numbers where the schema expects them
+            (:func:`coerce_cli_strings`). None: every value is config.yaml's.
 
     Raises:
         ConfigError: every schema violation, one per line; or the first cross-key mistake (a profile's dataset
             without a section or seeds, an unregistered method, a merged DSWM planner with n_elites > n_samples,
             a ``tables.main_dataset`` the profile does not run, raw files that are not there).
     """
-    validate_config(config, load_schema(schema or SCHEMA))
+    sources = sources or ConfigSources()
+    try:
+        return _resolve(config, root=root, schema=load_schema(schema or SCHEMA), sources=sources)
+    except ConfigError as err:
+        raise ConfigError(sources.relabel(str(err))) from None
+
+
+def _resolve(config: Mapping[str, Any], *, root: str | Path | None, schema: Mapping[str, Any],
+             sources: ConfigSources) -> Settings:
+    """:func:`resolve` once the schema is read; its errors say config.yaml (relabelled by the caller)."""
+    cli = dict(sources.layers).get(ConfigSources.CLI)
+    if cli:
+        config = coerce_cli_strings(config, schema, cli)
+    validate_config(config, schema, sources=sources)
     profile = str(config["profile"])
     run = select_profile(config)
     check_profile_datasets(config, run)

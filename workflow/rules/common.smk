@@ -12,10 +12,39 @@ from snakemake.exceptions import WorkflowError
 from dswm import settings as S
 from dswm.config import ConfigError
 
-# Bad config stops the run here, before any job: the message names the key and the expected form.
+
+
+def config_sources():
+    """Where each value of `config` came from: config.yaml, each --configfile (as given, relative to the working
+    directory when under it), then --config (Snakemake applies them in this order)."""
+    from dswm.config import ConfigSources, load_yaml
+
+    def shown(path):
+        path = Path(path)
+        return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
+
+    layers = [(shown(f), load_yaml(f)) for f in workflow.config_settings.configfiles]
+    if workflow.config_settings.config:
+        layers.append((ConfigSources.CLI, dict(workflow.config_settings.config)))
+    return ConfigSources(layers=tuple(layers))
+
+
+CONFIG_SOURCES = config_sources()
+"""Names the file (or --config) of a key in every config message."""
+
+
+def with_source(fn, *args):
+    """``fn(*args)``; a ConfigError it raises names where its key's value came from (CONFIG_SOURCES)."""
+    try:
+        return fn(*args)
+    except ConfigError as err:
+        raise ConfigError(CONFIG_SOURCES.relabel(str(err))) from None
+
+# Bad config stops the run here, before any job: the message names the key, where its value came from and the
+# expected form.
 try:
     SETTINGS = S.resolve(config, root=Path.cwd(), schema=Path(workflow.basedir) / "workflow" / "schemas" /
-                         "config.schema.yaml")
+                         "config.schema.yaml", sources=CONFIG_SOURCES)
 except ConfigError as err:
     raise WorkflowError(str(err)) from None
 

@@ -12,7 +12,7 @@ rule select:
     params:
         # built when a `select` job is: a config without `selection.planner_method` in methods.run (the README's own
         # method) runs every other target, and `select` alone stops with the message
-        settings=lambda wc: S.param(S.select_slice(SETTINGS)),
+        settings=lambda wc: S.param(with_source(S.select_slice, SETTINGS)),
         display=S.Untracked(DISPLAY),
     log:
         "logs/select.log",
