@@ -13,7 +13,6 @@ from dswm import settings as S
 from dswm.config import ConfigError
 
 
-
 def config_sources():
     """Where each value of `config` came from: config.yaml, each --configfile (as given, relative to the working
     directory when under it), then --config (Snakemake applies them in this order)."""
@@ -39,6 +38,7 @@ def with_source(fn, *args):
         return fn(*args)
     except ConfigError as err:
         raise ConfigError(CONFIG_SOURCES.relabel(str(err))) from None
+
 
 # Bad config stops the run here, before any job: the message names the key, where its value came from and the
 # expected form.
