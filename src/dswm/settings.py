@@ -9,8 +9,9 @@ starts, with a message that names the key, what was expected and what was found.
 Jobs never see config.yaml: each rule passes its job the slice of :class:`Settings` the job reads, in canonical
 form (:func:`dswm.config.canonical_json`, sorted keys), and that slice is the rule's rerun trigger. The slices
 are built here (``*_slice``) and read back in the job by the same builder. Settings that change only how a
-job reports (the progress bar's refresh interval) are passed beside the slice as a typed object, which
-Snakemake does not compare, so changing them reruns nothing (docs/PIPELINE.md).
+job reports (the progress bar's refresh interval; where and how its MLflow run is logged, :func:`tracking`) are
+passed beside the slice as a typed object, which Snakemake does not compare, so changing them reruns nothing
+(docs/PIPELINE.md).
 """
 from __future__ import annotations
 
