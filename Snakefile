@@ -37,8 +37,13 @@ workflow.default_target = "tables"
 workflow.localrules("tables", "build_tables", "figures", *[r.name for r in workflow.rules if r.name.startswith("figure_")])
 
 
+# No file stands where a rule writes (a file named results/tables): named here, before any DAG is built.
+check_output_paths()
+
+
 # A rule that `resources.rules` names must exist: a misspelled rule would silently keep the default resources.
-_unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules})
+_unknown = sorted(set(SETTINGS.resources.rules) - {r.name for r in workflow.rules} - CONDITIONAL_RULES)
 if _unknown:
-    raise WorkflowError(f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule "
-                        f"of this workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})")
+    raise WorkflowError(CONFIG_SOURCES.relabel(
+        f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule of this "
+        f"workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})"))

@@ -105,8 +105,8 @@ def test_settings_are_typed_and_come_back_from_their_plain_form(config):
     assert s.methods["dswm_wo_unc"].options.planner.lambda_u == 0.0
     assert s.display.progress_mininterval_s == config["evaluation"]["progress_mininterval_s"]
     back = runconfig.Settings.from_plain(runconfig.audit_slice(s))
-    # the audit reads no figure setting and no scheduler request
-    assert back == dataclasses.replace(s, display=None, selection=None, figures=None, resources=None)
+    # the audit reads no figure setting, no scheduler request and no tracking setting
+    assert back == dataclasses.replace(s, display=None, selection=None, figures=None, resources=None, mlflow=None)
     sel = runconfig.select_slice(s)["selection"]
     assert runconfig.build(runconfig.SelectionSettings, sel, "selection") == s.selection
 
@@ -211,3 +211,84 @@ def test_only_on_keeps_a_method_to_its_datasets_and_its_mistakes_are_named(confi
     cfg["methods"]["only_on"] = {"greedy": ["rome"]}
     with pytest.raises(ConfigError, match="methods.only_on.greedy"):
         runconfig.resolve(cfg)
+
+
+# ---- where a value came from: config.yaml, a --configfile, --config (Snakemake's own parsing of it) -------------
+def with_cli(config, *entries, files=()):
+    """``config`` with the --configfile ``files`` ((name, data)) and the --config ``entries`` applied as Snakemake
+    applies them (snakemake.cli.parse_config: a value nested in a mapping arrives as a string), and their sources."""
+    from snakemake.cli import parse_config
+    from snakemake.utils import update_config
+
+    from dswm.config import ConfigSources
+
+    merged = copy.deepcopy(config)
+    for _, data in files:
+        update_config(merged, copy.deepcopy(data))
+    cli = parse_config(list(entries))
+    update_config(merged, copy.deepcopy(cli))
+    return merged, ConfigSources(layers=(*files, (ConfigSources.CLI, cli)))
+
+
+def test_a_nested_config_value_arrives_as_a_string_and_is_read_where_the_schema_wants_a_number(config):
+    merged, sources = with_cli(config, 'scenario={"n_uavs": 3}', 'evaluation={"batch_days": false}',
+                               'profiles={"demo": {"seeds": {"milan": [4, 5]}}}')
+    assert merged["scenario"]["n_uavs"] == "3" and merged["evaluation"]["batch_days"] == "false"  # Snakemake's
+    s = runconfig.resolve(merged, sources=sources)
+    assert s.scenario.n_uavs == 3 and s.evaluation.batch_days is False and s.seeds("milan") == [4, 5]
+    assert s.methods["greedy"].options.sweeps == config["search"]["sweeps"]  # the rest as config.yaml says
+
+
+def test_a_nested_config_string_the_schema_cannot_read_says_it_came_from_config_as_a_string(config):
+    merged, sources = with_cli(config, 'scenario={"n_uavs": "three"}')
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value) == (
+        "invalid configuration:\n--config: key 'scenario.n_uavs' must be an integer >= 1; found 'three' (--config "
+        "passed it as the string 'three': Snakemake reads a value nested in --config as a string, taken here as a "
+        "number, boolean or null only where the schema expects one)")
+    merged, sources = with_cli(config, 'scenario={"n_uavs": 0}')  # read as a number, then refused as one
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value) == "invalid configuration:\n--config: key 'scenario.n_uavs' must be an integer >= 1; found 0"
+
+
+def test_each_message_names_the_file_or_the_option_its_value_came_from(config):
+    user = ("my/user.yaml", {"methods": {"run": ["static", "gredy"]}, "scenario": {"n_uavs": 0}})
+    merged, sources = with_cli(config, 'methods={"run": []}', files=[user])
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value) == (
+        "invalid configuration:\n--config: key 'methods.run' must be a non-empty list of registered method names, "
+        "e.g. [static, greedy, oracle]; found []\nmy/user.yaml: key 'scenario.n_uavs' must be an integer >= 1; "
+        "found 0")
+    merged, sources = with_cli(config, "profile=demo", files=[user[:1] + ({"methods": user[1]["methods"]},)])
+    with pytest.raises(ConfigError) as err:  # a cross-key check after the schema
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value).startswith("my/user.yaml: key 'methods.run' names 'gredy', which is not a registered "
+                                     "method")
+    merged, sources = with_cli(config, "profile=nosuch")
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value) == ("--config: key 'profile' must be one of demo, smoke, paper; found 'nosuch' (select one "
+                              "with --config profile=NAME)")
+    with pytest.raises(ConfigError) as err:  # nothing given: config.yaml
+        runconfig.resolve({**config, "scenario": {**config["scenario"], "n_uavs": 0}})
+    assert str(err.value) == "invalid configuration:\nconfig.yaml: key 'scenario.n_uavs' must be an integer >= 1; found 0"
+
+
+def test_snakemake_names_the_source_and_reads_nested_config_values(tmp_path):
+    snakemake = os.path.join(os.path.dirname(sys.executable), "snakemake")
+
+    def dry(*args):
+        proc = subprocess.run([snakemake, "tables", "-n", "--nolock", "--cores", "1", *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=300)
+        return proc.returncode, proc.stdout + proc.stderr
+
+    rc, out = dry("--config", 'scenario={"n_uavs":3}')  # valid: K = 3
+    assert rc == 0, out[-3000:]
+    (tmp_path / "user.yaml").write_text("scenario:\n  n_uavs: 0\n")
+    rc, out = dry("--configfile", str(tmp_path / "user.yaml"), "--config", 'methods={"run": []}')
+    assert rc != 0
+    assert "--config: key 'methods.run' must be a non-empty list of registered method names" in out
+    assert f"{tmp_path / 'user.yaml'}: key 'scenario.n_uavs' must be an integer >= 1; found 0" in out

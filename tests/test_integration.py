@@ -345,8 +345,9 @@ def scheduled(work) -> dict[str, int]:
 
 
 def test_a_job_reruns_on_the_settings_it_reads_only(run):
-    """Each rule's trigger is the slice of settings its job reads: display settings and key order rerun nothing,
-    a scenario constant reruns what depends on it and no data preparation (last: it rewrites config.yaml)."""
+    """Each rule's trigger is the slice of settings its job reads: display settings, key order and where runs are
+    logged rerun nothing, a scenario constant reruns what depends on it and no data preparation (last: it rewrites
+    config.yaml)."""
     import yaml
 
     assert snakemake(run, "tables", "calibrate", "--cores", "2").returncode == 0  # up to date after earlier tests
@@ -364,6 +365,12 @@ def test_a_job_reruns_on_the_settings_it_reads_only(run):
         assert scheduled(run) == {}
         (run / "config.yaml").write_text(yaml.safe_dump(reordered(cfg), sort_keys=False))
         assert list(yaml.safe_load((run / "config.yaml").read_text())) != list(cfg)
+        assert scheduled(run) == {}
+        # where and how runs are logged (server, batch size, HTTP retries) travels Untracked: nothing reruns
+        elsewhere = yaml.safe_load(original)
+        elsewhere["mlflow"].update(tracking_uri="http://127.0.0.1:9", batch_size=999)
+        elsewhere["mlflow"]["http"]["timeout_s"] += 1
+        (run / "config.yaml").write_text(yaml.safe_dump(elsewhere, sort_keys=False))
         assert scheduled(run) == {}
         higher = yaml.safe_load(original)
         higher["scenario"]["altitude_m"] = cfg["scenario"]["altitude_m"] + 20.0

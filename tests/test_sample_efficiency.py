@@ -136,8 +136,8 @@ def test_the_probe_job_scores_each_snapshot_on_the_first_id_day_as_the_evaluatio
     tracking.init_store(store=mlflow["store"], artifacts=mlflow["artifacts"], experiment=mlflow["experiment"])
     method = MethodSettings(name="maddpg", target="dswm.methods.maddpg:MADDPGController", label="MADDPG",
                             table_class="MARL", learns=True, training_source="maddpg", options=TINY)
-    job = {"profile": "smoke", "scenario": to_plain(scenario3), "mlflow": mlflow, "method": to_plain(method),
-           "evaluation": {"device": "cpu", "torch_threads": 1, "batch_days": True}}
+    job = {"profile": "smoke", "scenario": to_plain(scenario3), "mlflow": {"experiment": "probe"},
+           "method": to_plain(method), "evaluation": {"device": "cpu", "torch_threads": 1, "batch_days": True}}
     model = MADDPGController(name="maddpg", seed=0, options=TINY)
     model.load(base / "snap.pt")
     ev = evaluate(tensor=load(tmp_path / "data"), controller=model, scenario=scenario3, seed=0,
@@ -145,8 +145,9 @@ def test_the_probe_job_scores_each_snapshot_on_the_first_id_day_as_the_evaluatio
                   progress_interval_s=60.0).days
     ev.write_parquet(tmp_path / "days.parquet")
     out = tmp_path / "probes" / "probe.parquet"
-    frame = probe_job(job=job, display=Display(progress_mininterval_s=60.0), tensor_dir=tmp_path / "data",
-                      dataset="toy", method="maddpg", seed=0, snapshots_dir=tmp_path / "snapshots",
+    frame = probe_job(job=job, mlflow_cfg=mlflow, display=Display(progress_mininterval_s=60.0),
+                      tensor_dir=tmp_path / "data", dataset="toy", method="maddpg", seed=0,
+                      snapshots_dir=tmp_path / "snapshots",
                       evaluation=tmp_path / "days.parquet", out=out,
                       record_out=tmp_path / "probes" / "probe_manifest.json", repo=ROOT)
     assert frame.equals(pl.read_parquet(out))

@@ -15,8 +15,9 @@ import copy
 import dataclasses
 import hashlib
 import json
+import re
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import yaml
 
@@ -77,3 +78,58 @@ def load_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, found {type(data).__name__}")
     return data
+
+
+def _parts(key: str | Iterable[Any]) -> list[Any]:
+    """The path of a dotted key (``profiles.demo.seeds.milan[0]``) or of a path given as parts."""
+    if not isinstance(key, str):
+        return list(key)
+    return [int(p) if p.isdigit() else p for p in re.findall(r"[^.\[\]]+", key)]
+
+
+def lookup(data: Any, path: Iterable[Any]) -> tuple[bool, Any]:
+    """(True, the value) at ``path`` of nested mappings and lists; (False, None) where there is none."""
+    node = data
+    for part in path:
+        if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node):
+            node = node[part]
+        else:
+            return False, None
+    return True, node
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigSources:
+    """Where each value of the merged config came from, for messages: the workflow's ``config.yaml``, a
+    ``--configfile`` (named as given) or ``--config``.
+
+    Snakemake merges them in that order (mappings key by key, anything else replaced), so a value comes from the
+    last layer that holds its path.
+    """
+
+    layers: tuple[tuple[str, Any], ...] = ()
+    """(name, the layer's data), in the order Snakemake applies them over ``base``."""
+    base: str = "config.yaml"
+
+    CLI = "--config"
+
+    def of(self, key: str | Iterable[Any]) -> str:
+        """The name of the layer the value at ``key`` came from."""
+        path = _parts(key)
+        for name, data in reversed(self.layers):
+            if lookup(data, path)[0]:
+                return name
+        return self.base
+
+    def relabel(self, text: str) -> str:
+        """``text`` (a message of one or more lines) with each line's leading ``config.yaml:`` replaced by the layer of
+        the first key the line names (``key 'a.b'``)."""
+        def one(line: str) -> str:
+            if not line.startswith("config.yaml: "):
+                return line
+            named = re.search(r"\bkeys? '([^']+)'", line)
+            return line if named is None else self.of(named.group(1)) + line[len("config.yaml"):]
+
+        return "\n".join(one(line) for line in text.split("\n"))

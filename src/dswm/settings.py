@@ -9,11 +9,13 @@ starts, with a message that names the key, what was expected and what was found.
 Jobs never see config.yaml: each rule passes its job the slice of :class:`Settings` the job reads, in canonical
 form (:func:`dswm.config.canonical_json`, sorted keys), and that slice is the rule's rerun trigger. The slices
 are built here (``*_slice``) and read back in the job by the same builder. Settings that change only how a
-job reports (the progress bar's refresh interval) are passed beside the slice as a typed object, which
-Snakemake does not compare, so changing them reruns nothing (docs/PIPELINE.md).
+job reports (the progress bar's refresh interval; where and how its MLflow run is logged, :func:`tracking`) are
+passed beside the slice as a typed object, which Snakemake does not compare, so changing them reruns nothing
+(docs/PIPELINE.md).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import json
@@ -24,7 +26,7 @@ from typing import Any, Iterable, Mapping
 import jsonschema
 import yaml
 
-from dswm.config import ConfigError, build, canonical_json, merge, stable_hash, to_plain
+from dswm.config import ConfigError, ConfigSources, build, canonical_json, lookup, merge, stable_hash, to_plain
 from dswm.methods import registry
 from dswm.methods.search import SearchSettings
 from dswm.sim.scenario import CALIBRATE, Scenario
@@ -84,18 +86,66 @@ def _message(err: jsonschema.ValidationError, source: str) -> str:
     return f"{source}: key '{where}' must be {_describe(err.schema)}; found {err.instance!r}"
 
 
-def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml") -> None:
+def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml",
+                    sources: ConfigSources | None = None) -> None:
     """Check ``config`` against the schema; raise ConfigError listing every violation, one per line.
 
     Args:
-        config: the parsed config.yaml (with any ``--config`` overrides applied).
+        config: the parsed config.yaml (with any ``--configfile`` and ``--config`` overrides applied).
         schema: the parsed workflow/schemas/config.schema.yaml.
         source: file name used in messages.
+        sources: where each value came from (:class:`dswm.config.ConfigSources`); each line then names the layer
+            of its key instead of ``source``, and a string that ``--config`` passed says so.
     """
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)), e.message))
-    if errors:
-        raise ConfigError("invalid configuration:\n" + "\n".join(_message(e, source) for e in errors))
+    if not errors:
+        return
+    lines = []
+    for err in errors:
+        line = _message(err, source)
+        if sources is not None:
+            line = sources.relabel(line)
+            if isinstance(err.instance, str) and sources.of(list(err.absolute_path)) == ConfigSources.CLI:
+                line += (f" (--config passed it as the string {err.instance!r}: Snakemake reads a value nested in "
+                         f"--config as a string, taken here as a number, boolean or null only where the schema "
+                         f"expects one)")
+        lines.append(line)
+    raise ConfigError("invalid configuration:\n" + "\n".join(lines))
+
+
+def coerce_cli_strings(config: Mapping[str, Any], schema: Mapping[str, Any], cli: Mapping[str, Any]) -> dict:
+    """``config`` with each string that ``--config`` passed inside a mapping (Snakemake reads nested values as
+    strings: ``scenario={"n_uavs": 3}`` arrives as ``{"n_uavs": "3"}``) read as YAML where the schema refuses the
+    string and YAML reads it as a number, a boolean or null; every other value as it is.
+
+    Args:
+        config: the merged config.
+        schema: the JSON schema.
+        cli: the ``--config`` overrides (``workflow.config_settings.config``).
+    """
+    out = copy.deepcopy(dict(config))
+    validator = jsonschema.Draft202012Validator(schema)
+    while True:
+        changed = False
+        for err in validator.iter_errors(out):
+            path = list(err.absolute_path)
+            given, value = lookup(cli, path)
+            if len(path) < 2 or not given or not isinstance(value, str) or err.instance != value:
+                continue
+            try:
+                read = yaml.safe_load(value)
+            except yaml.YAMLError:
+                continue
+            if read is not None and not isinstance(read, (bool, int, float)):
+                continue
+            node = out
+            for part in path[:-1]:
+                node = node[part]
+            node[path[-1]] = read
+            changed = True
+        if not changed:
+            return out
 
 
 SCHEMA = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
@@ -379,7 +429,8 @@ class Settings:
     calibration: CalibrationSettings
     selection: SelectionSettings | None
     """None in the audit's slice (the audit reads no selection)."""
-    mlflow: MlflowSettings
+    mlflow: MlflowSettings | None
+    """None in the audit's slice (where a run is logged changes no result the audit checks)."""
     tables: TablesSettings
     figures: FiguresSettings | None = None
     """None in a job's slice that reads no figure setting (the audit's)."""
@@ -460,21 +511,38 @@ def _methods(config: Mapping[str, Any], profile: str) -> dict[str, MethodSetting
             for n, (s, cls, opt) in found.items()}
 
 
-def resolve(config: Mapping[str, Any], *, root: str | Path | None = None,
-            schema: str | Path | None = None) -> Settings:
-    """Validate config.yaml (with any ``--config`` overrides) and resolve it into one typed :class:`Settings`.
+def resolve(config: Mapping[str, Any], *, root: str | Path | None = None, schema: str | Path | None = None,
+            sources: ConfigSources | None = None) -> Settings:
+    """Validate config.yaml (with any ``--configfile`` and ``--config`` overrides) and resolve it into one typed
+    :class:`Settings`.
 
     Args:
         config: the parsed config mapping.
         root: where ``datasets.<name>.raw_files`` are looked up; None skips that check (a job's own files).
         schema: the JSON schema (default :data:`SCHEMA`).
+        sources: where each value came from (config.yaml, a ``--configfile``, ``--config``); messages name it, and
+            the strings ``--config`` passed are read as numbers where the schema expects them
+            (:func:`coerce_cli_strings`). None: every value is config.yaml's.
 
     Raises:
         ConfigError: every schema violation, one per line; or the first cross-key mistake (a profile's dataset
             without a section or seeds, an unregistered method, a merged DSWM planner with n_elites > n_samples,
             a ``tables.main_dataset`` the profile does not run, raw files that are not there).
     """
-    validate_config(config, load_schema(schema or SCHEMA))
+    sources = sources or ConfigSources()
+    try:
+        return _resolve(config, root=root, schema=load_schema(schema or SCHEMA), sources=sources)
+    except ConfigError as err:
+        raise ConfigError(sources.relabel(str(err))) from None
+
+
+def _resolve(config: Mapping[str, Any], *, root: str | Path | None, schema: Mapping[str, Any],
+             sources: ConfigSources) -> Settings:
+    """:func:`resolve` once the schema is read; its errors say config.yaml (relabelled by the caller)."""
+    cli = dict(sources.layers).get(ConfigSources.CLI)
+    if cli:
+        config = coerce_cli_strings(config, schema, cli)
+    validate_config(config, schema, sources=sources)
     profile = str(config["profile"])
     run = select_profile(config)
     check_profile_datasets(config, run)
@@ -667,8 +735,24 @@ def eda_slice(settings: Settings) -> dict:
 
 
 def mlflow_slice(settings: Settings) -> dict:
-    """What the ``mlflow_init`` job reads."""
-    return to_plain(settings.mlflow)
+    """The rerun trigger of the ``mlflow_init`` job: the experiment's name (:func:`experiment_slice`). Where it creates
+    the store and the experiment (``tracking_uri`` or ``store``, ``artifacts``) and how it asks a server (``http``)
+    travel beside it (:func:`tracking`): a new store or server reruns no job, the workflow's ``onstart`` creates
+    them there before any job logs."""
+    return experiment_slice(settings)
+
+
+def experiment_slice(settings: Settings) -> dict:
+    """The part of ``mlflow`` in the slice of a job that logs a run: the experiment's name alone (a renamed
+    experiment receives every job's run again). The rest of the section travels beside the slice as
+    :func:`tracking`, so a change of the server, the store, the batch size or the HTTP retries reruns no job."""
+    return {"experiment": settings.mlflow.experiment}
+
+
+def tracking(settings: Settings) -> "Untracked":
+    """The whole ``mlflow`` section, plain, as an :class:`Untracked` param (``params.tracking``): where and how a job
+    logs its run, never what it computes."""
+    return Untracked(to_plain(settings.mlflow))
 
 
 def calibrate_slice(settings: Settings) -> dict:
@@ -681,14 +765,14 @@ def calibrate_slice(settings: Settings) -> dict:
 
 def train_slice(settings: Settings, method: str, dataset: str | None = None, seed: int | None = None) -> dict:
     """What a ``train`` job of ``method`` reads: the profile, the scenario, the device and threads
-    (:class:`Runtime`), MLflow, and the method with only its training settings (so decision-time settings never
-    retrain); for a job of the sample-efficiency probe (:func:`probe_jobs`, given its ``dataset`` and ``seed``)
-    also ``snapshots``: {"fractions": ``figures.sample_efficiency.fractions``}."""
+    (:class:`Runtime`), the MLflow experiment (:func:`experiment_slice`), and the method with only its training
+    settings (so decision-time settings never retrain); for a job of the sample-efficiency probe (:func:`probe_jobs`,
+    given its ``dataset`` and ``seed``) also ``snapshots``: {"fractions": ``figures.sample_efficiency.fractions``}."""
     m = settings.methods[method]
     cls = m.controller_class
     entry = dataclasses.replace(m, options=cls.training_settings(m.options))
     job = {"profile": settings.profile, "scenario": to_plain(settings.scenario), "runtime": runtime(settings),
-           "mlflow": to_plain(settings.mlflow), "method": to_plain(entry)}
+           "mlflow": experiment_slice(settings), "method": to_plain(entry)}
     if dataset is not None and seed is not None and (dataset, method, int(seed)) in probe_jobs(settings):
         job["snapshots"] = {"fractions": list(settings.figures.sample_efficiency.fractions)}
     return job
@@ -696,10 +780,10 @@ def train_slice(settings: Settings, method: str, dataset: str | None = None, see
 
 def evaluate_slice(settings: Settings, method: str) -> dict:
     """What an ``evaluate`` job of ``method`` reads: the profile, the day limits, the scenario, the evaluation
-    settings, MLflow, and the method with all its settings."""
+    settings, the MLflow experiment (:func:`experiment_slice`), and the method with all its settings."""
     return {"profile": settings.profile, "eval_days": to_plain(settings.run.eval_days),
             "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
-            "mlflow": to_plain(settings.mlflow), "method": to_plain(settings.methods[method])}
+            "mlflow": experiment_slice(settings), "method": to_plain(settings.methods[method])}
 
 
 def tables_slice(settings: Settings) -> dict:
@@ -709,8 +793,10 @@ def tables_slice(settings: Settings) -> dict:
 
 
 def audit_slice(settings: Settings) -> dict:
-    """What the audit reads: every setting but the display ones and the selection's."""
-    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None, resources=None))
+    """What the audit reads: every setting but the display ones, the selection's, the figures', the resources and
+    MLflow's (the audit reads files, never the tracking store)."""
+    return to_plain(dataclasses.replace(settings, display=None, selection=None, figures=None, resources=None,
+                                        mlflow=None))
 
 
 def select_slice(settings: Settings) -> dict:
@@ -718,12 +804,15 @@ def select_slice(settings: Settings) -> dict:
     planner method with all its settings.
 
     Raises:
-        ConfigError: ``selection.planner_method`` is not in ``methods.run``.
+        ConfigError: ``selection.planner_method`` is not in ``methods.run``. Only the ``select`` rule needs it, so
+            the rule builds this slice when its job is built (every other target runs without it).
     """
     name = settings.selection.planner_method
     if name not in settings.methods:
         raise ConfigError(f"config.yaml: key 'selection.planner_method' is {name!r}, which 'methods.run' does not "
-                          f"list (found {', '.join(settings.methods)})")
+                          f"list (found {', '.join(settings.methods)}); the select target chooses that method's "
+                          f"planner values: add {name!r} to 'methods.run', or name a planner method of it in "
+                          f"'selection.planner_method'")
     return {"profile": settings.profile, "selection": to_plain(settings.selection),
             "scenario": to_plain(settings.scenario), "evaluation": to_plain(settings.evaluation),
             "method": to_plain(settings.methods[name])}
@@ -880,5 +969,6 @@ def probe_slice(settings: Settings, method: str) -> dict:
 
 def figures_slice(settings: Settings) -> dict:
     """What a figure job of the results reads: the tables' slice (profile, tables, datasets, the methods' rows),
-    MLflow (the runs its figure is attached to) and the ``figures`` section."""
-    return {**tables_slice(settings), "mlflow": to_plain(settings.mlflow), "figures": to_plain(settings.figures)}
+    the MLflow experiment (the runs its figure is attached to; :func:`experiment_slice`) and the ``figures``
+    section."""
+    return {**tables_slice(settings), "mlflow": experiment_slice(settings), "figures": to_plain(settings.figures)}

@@ -8,7 +8,7 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -86,3 +86,26 @@ def save_npz(path: str | Path, **arrays) -> None:
 
     with atomic_path(path) as tmp, tmp.open("wb") as fh:
         np.savez_compressed(fh, **arrays)
+
+
+def write_obstacles(paths: Iterable[Path | str]) -> dict[Path, tuple[str, list[Path]]]:
+    """What stops files from being written at ``paths`` (the outputs a run is about to write), found before any of
+    them is computed: {the existing path in the way: (why, the directories of ``paths`` it stops)}.
+
+    A directory that does not exist yet is judged by its nearest existing ancestor, where it would be created:
+    that ancestor must be a directory (a file in the way stops every user, root included) that this user may
+    write to and enter.
+    """
+    out: dict[Path, tuple[str, list[Path]]] = {}
+    for directory in sorted({Path(p).parent for p in paths}):
+        found = directory
+        while not found.exists() and found != found.parent:
+            found = found.parent
+        if not found.is_dir():
+            why = "a file, not a directory"
+        elif not os.access(found, os.W_OK | os.X_OK):
+            why = "a directory this user may not write to"
+        else:
+            continue
+        out.setdefault(found, (why, []))[1].append(directory)
+    return out

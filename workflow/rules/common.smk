@@ -12,10 +12,39 @@ from snakemake.exceptions import WorkflowError
 from dswm import settings as S
 from dswm.config import ConfigError
 
-# Bad config stops the run here, before any job: the message names the key and the expected form.
+
+def config_sources():
+    """Where each value of `config` came from: config.yaml, each --configfile (as given, relative to the working
+    directory when under it), then --config (Snakemake applies them in this order)."""
+    from dswm.config import ConfigSources, load_yaml
+
+    def shown(path):
+        path = Path(path)
+        return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
+
+    layers = [(shown(f), load_yaml(f)) for f in workflow.config_settings.configfiles]
+    if workflow.config_settings.config:
+        layers.append((ConfigSources.CLI, dict(workflow.config_settings.config)))
+    return ConfigSources(layers=tuple(layers))
+
+
+CONFIG_SOURCES = config_sources()
+"""Names the file (or --config) of a key in every config message."""
+
+
+def with_source(fn, *args):
+    """``fn(*args)``; a ConfigError it raises names where its key's value came from (CONFIG_SOURCES)."""
+    try:
+        return fn(*args)
+    except ConfigError as err:
+        raise ConfigError(CONFIG_SOURCES.relabel(str(err))) from None
+
+
+# Bad config stops the run here, before any job: the message names the key, where its value came from and the
+# expected form.
 try:
     SETTINGS = S.resolve(config, root=Path.cwd(), schema=Path(workflow.basedir) / "workflow" / "schemas" /
-                         "config.schema.yaml")
+                         "config.schema.yaml", sources=CONFIG_SOURCES)
 except ConfigError as err:
     raise WorkflowError(str(err)) from None
 
@@ -29,6 +58,9 @@ TRAINED = SETTINGS.trained()
 TRAINED_PATTERN = "|".join(TRAINED) or "(?!)"
 """The `train` rule's method constraint: a model.pt of a method that shares a training cannot be requested."""
 DISPLAY = SETTINGS.display
+TRACKING = S.tracking(SETTINGS)
+"""``params.tracking`` of every job that logs to MLflow: the ``mlflow`` section, Untracked. Where and how a run is
+logged (server or store, batch size, HTTP retries) reruns no job; the experiment's name is in the jobs' slices."""
 INTENSITY = S.intensity_inputs(SETTINGS)
 """`{"intensity": <the calibrate rule's record>}` when scenario.demand_intensity is `calibrate`, else `{}`: an input
 of every job that reads u (select, train, evaluate, audit_report), which takes u from it. A new record reruns
@@ -53,6 +85,49 @@ def job_resources(rule, method=None):
         out["gpu"] = lambda wc: int(S.needs_gpu(SETTINGS, name(wc)))
         out["slurm_extra"] = lambda wc: SETTINGS.resources.gpu_slurm_extra if S.needs_gpu(SETTINGS, name(wc)) else ""
     return out
+
+
+def write_obstacles_message(writers, files_only=False):
+    """The error of the paths in the way of ``writers`` ({a path the workflow writes: the rules writing it}), one
+    line per obstacle (prep.atomic.write_obstacles; with ``files_only``, files in the way alone); "" when none."""
+    from prep.atomic import write_obstacles
+
+    lines = []
+    for found, (why, dirs) in write_obstacles(writers).items():
+        if files_only and found.is_dir():
+            continue
+        rules_ = sorted({r for d in dirs for path, names in writers.items() if Path(path).parent == d for r in names})
+        shown = ", ".join(map(str, dirs[:3])) + (f" and {len(dirs) - 3} more" if len(dirs) > 3 else "")
+        fix = "move the file away" if why.startswith("a file") else f"make {found} writable"
+        lines.append(f"{found} is {why}: the outputs of {', '.join(rules_)} cannot be written in {shown}; nothing "
+                     f"was run ({fix} and run again)")
+    return "\n".join(lines)
+
+
+def check_output_paths():
+    """At parse time (end of the Snakefile): no file stands where a rule writes a directory (results/tables a
+    file): Snakemake would stop on it with a raw error while it builds any DAG that touches that directory."""
+    writers = {}
+    for r in workflow.rules:
+        for path in [*r.output, *r.log]:
+            static = str(path).split("{", 1)[0]
+            writers.setdefault(str(Path(static) / "-") if static != str(path) else str(path), set()).add(r.name)
+    message = write_obstacles_message(writers, files_only=True)
+    if message:
+        raise WorkflowError(message)
+
+
+def check_outputs_writable():
+    """As the workflow starts (onstart, before any job): every directory the jobs about to run write their outputs
+    and logs into can take a file. Else the run stops here, naming the directory and the rules, rather than when
+    the first job that writes there ends (`build_tables` comes after every evaluation)."""
+    writers = {}
+    for job in workflow.dag.needrun_jobs():
+        for path in [*job.output, *job.log]:
+            writers.setdefault(str(path), set()).add(job.rule.name)
+    message = write_obstacles_message(writers)
+    if message:
+        raise WorkflowError(message)
 
 
 def learns(method):
@@ -105,6 +180,11 @@ def reference_meta(dataset):
     return reference_input(SETTINGS.datasets.common, dataset)
 
 
+CONDITIONAL_RULES = set()
+"""Rules a rule file defines only under some settings (e.g. when DSWM is evaluated): a name `resources.rules` may
+give even when the current settings leave the rule out (Snakefile)."""
+
+
 # ---- figures (workflow/rules/figures.smk and the rule files of the extra runs) ----
 FIGURES_SETTINGS = SETTINGS.figures
 """config.yaml ``figures`` merged with ``figures.budgets.<profile>``."""
@@ -131,9 +211,7 @@ def figure_outputs(name, category, subcategory=None):
 def figure_attach(stages, datasets=None, methods=None):
     """``params.attach`` of a figure rule: the FINISHED MLflow runs its PNG and PDF are logged beside, those of
     ``stages`` restricted to ``datasets`` and ``methods`` (None: any) of this profile
-    (dswm.pipeline.tracking.attach_figure_outputs)."""
-    from dswm.config import to_plain
-
-    return S.param({"mlflow": to_plain(SETTINGS.mlflow), "profile": PROFILE, "stages": list(stages),
-                    "datasets": None if datasets is None else list(datasets),
-                    "methods": None if methods is None else list(methods)})
+    (dswm.pipeline.tracking.attach_figure_outputs). Untracked: which runs show a figure changes no figure."""
+    return S.Untracked({"mlflow": TRACKING.value, "profile": PROFILE, "stages": list(stages),
+                        "datasets": None if datasets is None else list(datasets),
+                        "methods": None if methods is None else list(methods)})

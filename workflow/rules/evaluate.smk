@@ -16,6 +16,7 @@ rule evaluate:
         record="results/{dataset}/{method}/seed{seed}/eval_manifest.json",
     params:
         settings=lambda wc: S.param(S.evaluate_slice(SETTINGS, wc.method)),
+        tracking=TRACKING,
         display=S.Untracked(DISPLAY),
     log:
         "logs/evaluate/{dataset}/{method}/seed{seed}.log",

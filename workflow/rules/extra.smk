@@ -13,15 +13,16 @@ EXTRA_DIR = "results/extra/{dataset}/{variant}/{method}/seed{seed}"
 FIG_DATASET = FIGURES_SETTINGS.dataset
 _missing_seeds = sorted(set(FIGURES_SETTINGS.seeds) - set(SETTINGS.seeds(FIG_DATASET)))
 if _missing_seeds:
-    raise WorkflowError(f"config.yaml: key 'figures.seeds' holds {_missing_seeds}, which profile {PROFILE!r} does not "
-                        f"run on {FIG_DATASET} (profiles.{PROFILE}.seeds.{FIG_DATASET}: "
-                        f"{SETTINGS.seeds(FIG_DATASET)}); the extra runs are compared with those main evaluations")
+    raise WorkflowError(CONFIG_SOURCES.relabel(
+        f"config.yaml: key 'figures.seeds' holds {_missing_seeds}, which profile {PROFILE!r} does not run on "
+        f"{FIG_DATASET} (profiles.{PROFILE}.seeds.{FIG_DATASET}: {SETTINGS.seeds(FIG_DATASET)}); the extra runs are "
+        f"compared with those main evaluations"))
 
 for _v, _m, _s in S.extra_jobs(SETTINGS):  # a do variant of a method without an imagined demand stops here
     try:
         S.variant_evaluate_slice(SETTINGS, _m, EXTRA_VARIANTS[_v])
     except ConfigError as err:
-        raise WorkflowError(str(err)) from None
+        raise WorkflowError(CONFIG_SOURCES.relabel(str(err))) from None
 
 
 def _alternatives(names):
@@ -64,6 +65,7 @@ rule extra_train:
         manifest=EXTRA_DIR + "/train_manifest.json",
     params:
         settings=lambda wc: S.param(S.variant_train_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        tracking=TRACKING,
         run_dir=lambda wc: EXTRA_DIR.format(**dict(wc.items())) + "/train",
     log:
         "logs/extra_train/{dataset}/{variant}/{method}/seed{seed}.log",
@@ -92,6 +94,7 @@ rule extra_evaluate:
         record=EXTRA_DIR + "/eval_manifest.json",  # SHA-256 and size of the two files above, written last
     params:
         settings=lambda wc: S.param(S.variant_evaluate_slice(SETTINGS, wc.method, EXTRA_VARIANTS[wc.variant])),
+        tracking=TRACKING,
         display=S.Untracked(DISPLAY),
     log:
         "logs/extra_evaluate/{dataset}/{variant}/{method}/seed{seed}.log",

@@ -13,6 +13,7 @@ rule figure_main:
         **figure_outputs("main", "Main results"),
     params:
         settings=S.param(S.figures_slice(SETTINGS)),
+        tracking=TRACKING,
     log:
         "logs/figures/main.log",
     threads: 1
@@ -32,6 +33,7 @@ rule figure_ood:
         **figure_outputs("ood", "Main results"),
     params:
         settings=S.param(S.figures_slice(SETTINGS)),
+        tracking=TRACKING,
     log:
         "logs/figures/ood.log",
     threads: 1
@@ -51,6 +53,7 @@ rule figure_cross_dataset:
         **figure_outputs("cross_dataset", "Main results"),
     params:
         settings=S.param(S.figures_slice(SETTINGS)),
+        tracking=TRACKING,
     log:
         "logs/figures/cross_dataset.log",
     threads: 1
@@ -67,6 +70,7 @@ rule figure_eda:
         **figure_outputs("eda", "Data"),
     params:
         settings=S.param(S.figures_slice(SETTINGS)),
+        tracking=TRACKING,
     log:
         "logs/figures/eda.log",
     threads: 1

@@ -30,6 +30,7 @@ rule probe:
         record=PROBE_DIR + "/probe_manifest.json",  # SHA-256 and size of the probe file, written last
     params:
         settings=lambda wc: S.param(S.probe_slice(SETTINGS, wc.method)),
+        tracking=TRACKING,
         display=S.Untracked(DISPLAY),
     log:
         "logs/probe/{dataset}/{method}/seed{seed}.log",

@@ -10,7 +10,9 @@ rule select:
     output:
         report="results/selection/selection.json",
     params:
-        settings=S.param(S.select_slice(SETTINGS)),
+        # built when a `select` job is: a config without `selection.planner_method` in methods.run (the README's own
+        # method) runs every other target, and `select` alone stops with the message
+        settings=lambda wc: S.param(with_source(S.select_slice, SETTINGS)),
         display=S.Untracked(DISPLAY),
     log:
         "logs/select.log",

@@ -18,6 +18,7 @@ rule train:
         snapshots=directory("results/{dataset}/{method}/seed{seed}/snapshots"),
     params:
         settings=lambda wc: S.param(S.train_slice(SETTINGS, wc.method, wc.dataset, int(wc.seed))),
+        tracking=TRACKING,
         evaluated_as=lambda wc: S.Untracked(S.evaluated_as(SETTINGS, wc.method)),
         run_dir=lambda wc: f"results/{wc.dataset}/{wc.method}/seed{wc.seed}/train",
     log:

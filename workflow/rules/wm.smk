@@ -13,6 +13,9 @@ WM_METHOD = "dswm"
 WM_DATASET = FIGURES_SETTINGS.dataset
 WM_DIR = "results/extra/{dataset}/wm_quality/seed{seed}"
 MILAN_ASSETS = Path(workflow.basedir) / "src" / "prep" / "assets" / "milan"
+CONDITIONAL_RULES.update({"wm_quality", "figure_wm_quality", "figure_training", "figure_qualitative_trajectories",
+                          *(f"figure_qualitative_{d}" for d in ("milan", "shanghai", "yjmob"))})
+"""The rules below are defined only when the profile runs what they draw; `resources.rules` may name them all."""
 
 
 def dswm_runs_on(dataset):
@@ -55,6 +58,7 @@ if WM_METHOD in TRAINED:
             settings=S.param({**S.evaluate_slice(SETTINGS, WM_METHOD),
                               "wm_quality": to_plain(FIGURES_SETTINGS.wm_quality),
                               "replay_days": to_plain(FIGURES_SETTINGS.eval_days)}),
+            tracking=TRACKING,
             display=S.Untracked(DISPLAY),
         log:
             "logs/wm/{dataset}/seed{seed}.log",

@@ -8,8 +8,9 @@ from dswm.pipeline.jobs import evaluate_job
 from dswm.settings import read_param
 
 w, inp, p = snakemake.wildcards, snakemake.input, snakemake.params  # noqa: F821
-evaluate_job(job=read_param(p.settings), display=p.display.value, tensor_dir=Path(inp.tensor).parent,
-             dataset=w.dataset, method=w.method, seed=int(w.seed), days_out=snakemake.output.days,  # noqa: F821
+evaluate_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, display=p.display.value,
+             tensor_dir=Path(inp.tensor).parent, dataset=w.dataset, method=w.method, seed=int(w.seed),
+             days_out=snakemake.output.days,  # noqa: F821
              trajectory_out=snakemake.output.trajectory, record_out=snakemake.output.record,  # noqa: F821
              model=inp.get("model"),
              manifest=inp.get("manifest"), repo=snakemake.scriptdir + "/../..",  # noqa: F821

@@ -8,7 +8,7 @@ from dswm.pipeline.jobs import extra_evaluate_job
 from dswm.settings import read_param
 
 w, inp, p, out = snakemake.wildcards, snakemake.input, snakemake.params, snakemake.output  # noqa: F821
-extra_evaluate_job(job=read_param(p.settings), variant=w.variant, display=p.display.value,
+extra_evaluate_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, variant=w.variant, display=p.display.value,
                    tensor_dir=Path(inp.tensor).parent, dataset=w.dataset, method=w.method, seed=int(w.seed),
                    days_out=out.days, trajectory_out=out.trajectory, record_out=out.record,
                    model=inp.get("model"), manifest=inp.get("manifest"),

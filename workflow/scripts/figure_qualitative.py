@@ -20,4 +20,4 @@ else:
 
 from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
 
-attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows
+attach_figure_outputs(p.attach.value, out)  # the figure beside the MLflow runs it shows

@@ -9,5 +9,6 @@ from dswm.figures.results import figure_job  # noqa: E402
 from dswm.settings import read_param  # noqa: E402
 
 smk = snakemake  # noqa: F821
-figure_job(smk.rule.removeprefix("figure_"), job=read_param(smk.params.settings), inputs=smk.input,
+figure_job(smk.rule.removeprefix("figure_"), job=read_param(smk.params.settings),
+           mlflow_cfg=smk.params.tracking.value, inputs=smk.input,
            out={k: smk.output[k] for k in ("png", "pdf", "csv")})

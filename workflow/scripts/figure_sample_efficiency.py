@@ -17,4 +17,4 @@ draw_sample_efficiency(read_probes(inp.probes), order=p.methods, labels=p.labels
 
 from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
 
-attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows
+attach_figure_outputs(p.attach.value, out)  # the figure beside the MLflow runs it shows

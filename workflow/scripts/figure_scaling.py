@@ -19,4 +19,4 @@ draw_scaling(days, order=p.methods, labels=p.labels, split_labels=p.split_labels
 
 from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
 
-attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows
+attach_figure_outputs(p.attach.value, out)  # the figure beside the MLflow runs it shows

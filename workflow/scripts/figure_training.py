@@ -17,4 +17,4 @@ draw_training(read_histories(inp.histories), datasets=p.datasets, labels=DATASET
 
 from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
 
-attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows
+attach_figure_outputs(p.attach.value, out)  # the figure beside the MLflow runs it shows

@@ -18,4 +18,4 @@ draw_wm_quality(pl.concat([pl.read_parquet(f) for f in inp.rmse]), pl.concat([pl
 
 from dswm.pipeline.tracking import attach_figure_outputs  # noqa: E402
 
-attach_figure_outputs(p.attach, out)  # the figure beside the MLflow runs it shows
+attach_figure_outputs(p.attach.value, out)  # the figure beside the MLflow runs it shows

@@ -5,11 +5,8 @@ import sys
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
 from prep.atomic import write_json
-from dswm.pipeline.tracking import init_store
-from dswm.settings import read_param
+from dswm.pipeline.tracking import ensure_store
 
-job = read_param(snakemake.params.settings)  # noqa: F821
-info = init_store(store=job["store"], artifacts=job["artifacts"], experiment=job["experiment"],
-                  tracking_uri=job.get("tracking_uri"), http=job.get("http"))
+info = ensure_store(snakemake.params.tracking.value)  # noqa: F821 (the mlflow section; its experiment is the slice's)
 print(f"MLflow experiment {info['experiment']!r} (id {info['experiment_id']}) in {info['tracking_uri']}", file=sys.stderr)
 write_json(snakemake.output.marker, info)  # noqa: F821

@@ -9,8 +9,9 @@ from dswm.pipeline.probe import probe_job
 from dswm.settings import read_param
 
 w, inp, p = snakemake.wildcards, snakemake.input, snakemake.params  # noqa: F821
-probe_job(job=read_param(p.settings), display=p.display.value, tensor_dir=Path(inp.tensor).parent,
-          dataset=w.dataset, method=w.method, seed=int(w.seed), snapshots_dir=inp.snapshots,
+probe_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, display=p.display.value,
+          tensor_dir=Path(inp.tensor).parent, dataset=w.dataset, method=w.method, seed=int(w.seed),
+          snapshots_dir=inp.snapshots,
           evaluation=inp.evaluation,  # the job's own evaluation: its value on the probe day is recorded
           out=snakemake.output.probe, record_out=snakemake.output.record,  # noqa: F821
           repo=snakemake.scriptdir + "/../..",  # noqa: F821

@@ -8,7 +8,7 @@ from dswm.pipeline.jobs import train_job
 from dswm.settings import read_param
 
 w, p = snakemake.wildcards, snakemake.params  # noqa: F821
-train_job(job=read_param(p.settings), evaluated_as=p.evaluated_as.value,
+train_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, evaluated_as=p.evaluated_as.value,
           tensor_dir=Path(snakemake.input.tensor).parent, dataset=w.dataset, method=w.method,  # noqa: F821
           seed=int(w.seed), model_out=snakemake.output.model, manifest_out=snakemake.output.manifest,  # noqa: F821
           run_dir=p.run_dir, repo=snakemake.scriptdir + "/../..",  # noqa: F821

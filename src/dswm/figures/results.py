@@ -191,13 +191,14 @@ def draw_cross(days: pl.DataFrame, *, labels: Mapping[str, str], classes: Mappin
     return data
 
 
-def figure_job(name: str, *, job: Mapping, inputs, out: Mapping[str, str | Path]) -> pl.DataFrame:
+def figure_job(name: str, *, job: Mapping, mlflow_cfg: Mapping, inputs, out: Mapping[str, str | Path]) -> pl.DataFrame:
     """Draw figure ``name`` (main, ood, cross_dataset or eda) for its rule and log it (PNG and PDF) as an artifact
     of every evaluation run it shows.
 
     Args:
         job: the plain form of ``dswm.settings.figures_slice`` (profile, tables, datasets, methods in run order,
-            mlflow).
+            the MLflow experiment).
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``): where the runs it is attached to are.
         inputs: the rule's input: ``results`` (every days.parquet of the profile) and, per dataset, its meta.json
             (``<dataset>``) or, for eda, its EDA statistics (``eda_<dataset>``).
     """
@@ -210,7 +211,7 @@ def figure_job(name: str, *, job: Mapping, inputs, out: Mapping[str, str | Path]
     # The figure is logged beside the evaluation runs it shows (every dataset's for cross_dataset).
     from dswm.pipeline.tracking import attach_figures
 
-    attach_figures(mlflow_cfg=job["mlflow"], paths=[out["png"], out["pdf"]], stage="evaluate", profile=profile,
+    attach_figures(mlflow_cfg=mlflow_cfg, paths=[out["png"], out["pdf"]], stage="evaluate", profile=profile,
                    datasets=None if name == "cross_dataset" else [job["tables"]["main_dataset"]])
     return data
 

@@ -106,14 +106,16 @@ def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
     return core_from_tensor(tensor, scenario, tensor.train_days, device=device)
 
 
-def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: str | Path, dataset: str, method: str,
-              seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
-              repo: str | Path, intensity: str | Path | None = None,
+def train_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], evaluated_as: list[str],
+              tensor_dir: str | Path, dataset: str, method: str, seed: int, model_out: str | Path,
+              manifest_out: str | Path, run_dir: str | Path, repo: str | Path, intensity: str | Path | None = None,
               history_out: str | Path | None = None, snapshots_out: str | Path | None = None) -> dict:
     """Fit ``method`` on the training days of ``dataset``; write the model file and the training manifest.
 
     Args:
         job: the plain form of ``dswm.settings.train_slice`` (the method carries its training settings only).
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``): where the run is logged, not a rerun
+            trigger.
         evaluated_as: the methods whose evaluations load this model (an MLflow tag).
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
         history_out: where the loss history is written as well (``dswm.pipeline.history.write_history``: one row
@@ -133,7 +135,7 @@ def train_job(*, job: Mapping[str, Any], evaluated_as: list[str], tensor_dir: st
     job = _as_used(job, scenario)
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
-    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="train", dataset=dataset,
+    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage="train", dataset=dataset,
                           method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
                           keep=[p for p in (model_out, manifest_out, history_out) if p is not None]) as run:
         run.set_tags({"evaluated_as": ",".join(evaluated_as)})  # methods whose evaluations load this model
@@ -240,15 +242,18 @@ def model_record(*, method: str, source: str | None = None, model: str | Path | 
             "train_manifest": _workdir_relative(manifest)}
 
 
-def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, dataset: str, method: str,
-                 seed: int, days_out: str | Path, trajectory_out: str | Path, record_out: str | Path,
-                 repo: str | Path, model: str | Path | None = None, manifest: str | Path | None = None,
+def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display: Display,
+                 tensor_dir: str | Path, dataset: str, method: str, seed: int, days_out: str | Path,
+                 trajectory_out: str | Path, record_out: str | Path, repo: str | Path,
+                 model: str | Path | None = None, manifest: str | Path | None = None,
                  intensity: str | Path | None = None) -> evaluation.EvalResult:
     """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz, then their content record
     ``record_out``; track it in MLflow.
 
     Args:
         job: the plain form of ``dswm.settings.evaluate_slice``.
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``): where the run is logged, not a rerun
+            trigger.
         display: how the job reports progress (not part of its rerun trigger).
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
 
@@ -263,7 +268,7 @@ def evaluate_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | 
     job = _as_used(job, scenario)
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
-    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="evaluate", dataset=dataset,
+    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage="evaluate", dataset=dataset,
                           method=method, seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
                           keep=[days_out, trajectory_out]) as run:
         log_demand_input(run, tensor_dir, dataset, "evaluation")
@@ -374,13 +379,13 @@ import polars as pl  # noqa: E402
 from dswm.settings import scale_intensity  # noqa: E402
 
 
-def _variant_run(*, job: Mapping[str, Any], part: str, variant: str, dataset: str, method: str, seed: int,
-                 repo: str | Path, keep: Sequence[str | Path]):
+def _variant_run(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], part: str, variant: str, dataset: str,
+                 method: str, seed: int, repo: str | Path, keep: Sequence[str | Path]):
     """The MLflow run of one extra job, in the figures' experiment (``kind`` "extra"): tagged ``stage`` "extra",
     ``variant`` and ``extra_job`` (``part``: train or evaluate); its job key
     (``extra/<variant>/<part>/<dataset>/<method>/seed<seed>``) is its own, so a rerun replaces only its own earlier
     run."""
-    return tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=f"extra/{variant}/{part}",
+    return tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage=f"extra/{variant}/{part}",
                             dataset=dataset, method=method, seed=seed, config_hash=stable_hash(job, length=12),
                             repo=repo, keep=keep, kind="extra")
 
@@ -392,14 +397,16 @@ def _variant_common(job: Mapping[str, Any], key: str, cls: type,
     return run, scale_intensity(scenario, float(job.get("intensity_scale", 1.0))), m
 
 
-def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | Path, dataset: str, method: str,
-                    seed: int, model_out: str | Path, manifest_out: str | Path, run_dir: str | Path,
+def extra_train_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], variant: str, tensor_dir: str | Path,
+                    dataset: str, method: str, seed: int, model_out: str | Path, manifest_out: str | Path,
+                    run_dir: str | Path,
                     repo: str | Path, intensity: str | Path | None = None) -> dict:
     """Fit ``method`` on the training days of ``dataset`` under an extra run's variant (its fleet size or demand
     intensity); write the model file and the training manifest as :func:`train_job` does.
 
     Args:
         job: the plain form of ``dswm.settings.variant_train_slice``.
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``).
         variant: the variant's name (``K8``, ``u2``; an MLflow tag).
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
 
@@ -410,8 +417,8 @@ def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | P
     job = _as_used(job, scenario)
     data_files = prepared_files_read(tensor_dir)
     tensor = _load_tensor(tensor_dir)
-    with _variant_run(job=job, part="train", variant=variant, dataset=dataset, method=method, seed=seed,
-                      repo=repo, keep=[model_out, manifest_out]) as run:
+    with _variant_run(job=job, mlflow_cfg=mlflow_cfg, part="train", variant=variant, dataset=dataset, method=method,
+                      seed=seed, repo=repo, keep=[model_out, manifest_out]) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "train"})
         log_demand_input(run, tensor_dir, dataset, "training")
         torch.manual_seed(seed)
@@ -422,8 +429,9 @@ def extra_train_job(*, job: Mapping[str, Any], variant: str, tensor_dir: str | P
                                extra={"variant": variant})
 
 
-def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display, tensor_dir: str | Path,
-                       dataset: str, method: str, seed: int, days_out: str | Path, trajectory_out: str | Path,
+def extra_evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], variant: str, display: Display,
+                       tensor_dir: str | Path, dataset: str, method: str, seed: int, days_out: str | Path,
+                       trajectory_out: str | Path,
                        record_out: str | Path, repo: str | Path, model: str | Path | None = None,
                        manifest: str | Path | None = None,
                        intensity: str | Path | None = None) -> evaluation.EvalResult:
@@ -432,6 +440,7 @@ def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display
 
     Args:
         job: the plain form of ``dswm.settings.variant_evaluate_slice``.
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``).
         variant: the variant's name (``do0.5``, ``K8``, ``u2``; an MLflow tag and a column of days.parquet).
         model, manifest: the model of the method's training source, trained by the main ``train`` rule when the
             variant's train slice is the main one's (a do variant), else by ``extra_train``.
@@ -441,8 +450,8 @@ def extra_evaluate_job(*, job: Mapping[str, Any], variant: str, display: Display
     job = _as_used(job, scenario)
     limits = build(EvalDayLimits, job["eval_days"], "eval_days")
     tensor = _load_tensor(tensor_dir)
-    with _variant_run(job=job, part="evaluate", variant=variant, dataset=dataset, method=method, seed=seed,
-                      repo=repo, keep=[days_out, trajectory_out]) as run:
+    with _variant_run(job=job, mlflow_cfg=mlflow_cfg, part="evaluate", variant=variant, dataset=dataset,
+                      method=method, seed=seed, repo=repo, keep=[days_out, trajectory_out]) as run:
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "evaluate"})
         log_demand_input(run, tensor_dir, dataset, "evaluation")
         ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)

@@ -19,15 +19,17 @@ from prep.atomic import atomic_path, write_json
 from prep.rawio import sha256_file
 
 
-def probe_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, dataset: str, method: str,
-              seed: int, snapshots_dir: str | Path, evaluation: str | Path | None, out: str | Path,
-              record_out: str | Path, repo: str | Path, intensity: str | Path | None = None) -> pl.DataFrame:
+def probe_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display: Display, tensor_dir: str | Path,
+              dataset: str, method: str, seed: int, snapshots_dir: str | Path, evaluation: str | Path | None,
+              out: str | Path, record_out: str | Path, repo: str | Path,
+              intensity: str | Path | None = None) -> pl.DataFrame:
     """Evaluate every snapshot of ``snapshots_dir`` on the probe day; write ``out`` (probe.parquet), then its
     content record ``record_out``; track it in MLflow (stage "probe", metrics ``probe/<metric>`` against the
     transitions consumed).
 
     Args:
         job: the plain form of ``dswm.settings.probe_slice`` (the method with all its settings, as its evaluation).
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``): where the run is logged.
         display: how the job reports progress.
         snapshots_dir: the train rule's ``snapshots`` output of (dataset, method, seed), with its index.json.
         evaluation: the days.parquet of the same job's evaluation (None: none): its value on the probe day is
@@ -51,7 +53,7 @@ def probe_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Pat
     if evaluation is not None:
         on_day = pl.read_parquet(evaluation).filter(pl.col("day") == day)["sr_mean"]
         evaluated = float(on_day[0]) if len(on_day) else None
-    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage="probe", dataset=dataset, method=method,
+    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage="probe", dataset=dataset, method=method,
                           seed=seed, config_hash=stable_hash(job, length=12), repo=repo, keep=[out],
                           kind="probe") as run:
         run.set_tags({"probe_day": tensor.labels[day], "diagnostic_only": "true",

@@ -304,6 +304,15 @@ def adopt_store(mlflow_cfg: Mapping[str, Any], *, workdir: str | None = None) ->
             "artifact_location": [old_location, location]}
 
 
+def ensure_store(mlflow_cfg: Mapping[str, Any]) -> dict:
+    """:func:`init_store` for the ``mlflow`` section ``mlflow_cfg``: its store (or server), artifact location and
+    experiment exist afterwards, created where missing. Run by the ``mlflow_init`` job, and as a workflow starts
+    (workflow/rules/mlflow.smk ``onstart``) for a store or server that changed since ``mlflow_init`` ran."""
+    return init_store(store=mlflow_cfg["store"], artifacts=mlflow_cfg["artifacts"],
+                      experiment=mlflow_cfg["experiment"], tracking_uri=mlflow_cfg.get("tracking_uri"),
+                      http=mlflow_cfg.get("http"))
+
+
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     """Dotted-key, string-valued view of a nested config (lists as JSON), ready to be MLflow params."""
     out: dict[str, str] = {}
@@ -620,9 +629,9 @@ def attach_figures(*, mlflow_cfg: Mapping[str, Any], paths: Sequence[str | Path]
     return len(chosen)
 
 
-def attach_figure_outputs(attach: str, out: Mapping[str, str | Path]) -> int:
+def attach_figure_outputs(attach: Mapping[str, Any], out: Mapping[str, str | Path]) -> int:
     """A figure rule's side of ``figure_attach`` (workflow/rules/common.smk): log the PNG and PDF of ``out`` beside
-    the runs ``attach`` (its canonical JSON) names; returns how many runs received them."""
-    sel = json.loads(attach)
+    the runs ``attach`` (the value of that Untracked param) names; returns how many runs received them."""
+    sel = attach
     return attach_figures(mlflow_cfg=sel["mlflow"], paths=[out["png"], out["pdf"]], stage=sel["stages"],
                           datasets=sel["datasets"], methods=sel["methods"], profile=sel["profile"])

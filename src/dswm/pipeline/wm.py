@@ -67,15 +67,16 @@ def _write_parquet(frame: pl.DataFrame, path: str | Path) -> None:
         frame.write_parquet(tmp)
 
 
-def wm_quality_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str | Path, dataset: str, seed: int,
-                   model: str | Path, manifest: str | Path, main_days: str | Path, rmse_out: str | Path,
-                   returns_out: str | Path, maps_out: str | Path, record_out: str | Path, repo: str | Path,
-                   intensity: str | Path | None = None) -> dict:
+def wm_quality_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display: Display,
+                   tensor_dir: str | Path, dataset: str, seed: int, model: str | Path, manifest: str | Path,
+                   main_days: str | Path, rmse_out: str | Path, returns_out: str | Path, maps_out: str | Path,
+                   record_out: str | Path, repo: str | Path, intensity: str | Path | None = None) -> dict:
     """Replay one DSWM model on the main evaluation's days and measure its world model (module docstring).
 
     Args:
         job: the plain ``dswm.settings.evaluate_slice`` of the method (``job["method"]``) plus ``wm_quality``
             (``figures.wm_quality``) and ``replay_days`` (``figures.eval_days``).
+        mlflow_cfg: the ``mlflow`` section (``dswm.settings.tracking``): where the run is logged.
         model, manifest: the method's training source's model file and train_manifest.json.
         main_days: the main evaluation's days.parquet of (dataset, method, seed): the days replayed, and the scores
             the replay is checked against.
@@ -99,7 +100,7 @@ def wm_quality_job(*, job: Mapping[str, Any], display: Display, tensor_dir: str 
     main = pl.read_parquet(main_days)
     days = days_to_replay(main, build(EvalDayLimits, job["replay_days"], "figures.eval_days"), str(main_days))
     tensor = load(tensor_dir)
-    with tracking.job_run(mlflow_cfg=job["mlflow"], settings=job, stage=STAGE, dataset=dataset, method=m.name,
+    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage=STAGE, dataset=dataset, method=m.name,
                           seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
                           keep=[rmse_out, returns_out, maps_out], kind="wm_quality") as run:
         ctrl = registry.build(m.name, target=m.target, options=m.options, seed=seed, device=ev.device)
