@@ -18,9 +18,10 @@ SKIP = {".git", ".venv", "results", "logs", ".snakemake", "__pycache__", ".pytes
 TIMING = "smoke_timing.json"
 """Written at the root of the smoke tree: the wall time of each of its Snakemake calls, in seconds."""
 LIMIT_S = 2400
-"""The hang guard of one call of the smoke DAG (`tables calibrate`, then `figures`), not a budget: alone on this
-project's idle 2-core machine `tables calibrate` takes 7 min; the slowest call measured, 22.2 min, ran beside the
-whole smoke DAG on SLURM, which the cluster tests now run before the local run rather than beside it (conftest)."""
+"""The hang guard of one call of the smoke DAG (`tables calibrate`, then `figures`), not a budget: on this project's
+2-core machine `tables calibrate` takes 7 min idle and took 17.7 min with another smoke run beside it; the slowest
+call measured, 22.2 min, ran beside the whole smoke DAG on SLURM, which the cluster tests now run before the local
+run rather than beside it (conftest.smoke_tables)."""
 PROGRESS = re.compile(r"^(\d+) of (\d+) steps \((\d+%)\) done", flags=re.M)
 
 

@@ -31,8 +31,9 @@ local smoke run's, whose jobs have the same settings slices (no train or evaluat
 OVERLAY = "slurm_smoke.yaml"
 """Written at the root of the SLURM run's tree and given to Snakemake with ``--configfile`` after config.yaml."""
 LIMIT_S = 2400
-"""The hang guard of the SLURM run, not a budget: its 33 jobs take ~7 min on this project's idle 2-core machine
-(the whole smoke DAG's 75 took 15.1 min alone, and had not ended after 27 min beside the local run)."""
+"""The hang guard of the SLURM run, not a budget: its 33 jobs took 12.8 min on this project's 2-core machine with
+another smoke run beside them (the whole smoke DAG's 75 took 15.1 min alone, and had not ended after 27 min beside
+the local run)."""
 INIT_STATUS_CHECK_S = 2
 """The first `sacct` query this long after a submission: the loopback cluster's accounting answers at once, where
 profiles/slurm's 10 s spare a real cluster's slurmdbd."""
