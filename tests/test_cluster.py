@@ -23,6 +23,7 @@ import polars as pl
 import pytest
 from mlflow.tracking import MlflowClient
 
+from cluster.background import DATASETS
 from conftest import ROOT
 from dswm.config import load_yaml
 from smoke import TIMING
@@ -88,7 +89,7 @@ def slurm_run(engines, slurm_smoke, smoke_tables, request):
     records = sacct(submitted.values())
     local = json.loads((smoke_tables / TIMING).read_text())
     summary = {
-        "slurm": {"datasets": ["milan"], "jobs": len(submitted),
+        "slurm": {"datasets": list(DATASETS), "jobs": len(submitted),
                   "local_rules_jobs": sum(job_stats(text).values()) - len(submitted), "wall_s": round(wall, 1),
                   "core_hours": round(sum(int(r["CPUTimeRAW"]) for r in records) / 3600, 3),
                   "beside": "the unit tests (pytest --cluster) or nothing (pytest --cluster -m cluster), on 2 cores"},
