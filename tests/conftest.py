@@ -71,12 +71,23 @@ def slurm_smoke(request, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory):
-    """A copy of the working tree where the smoke DAG has run: `tables calibrate`, then `figures` (the integration
-    tests check it; the cluster tests compare a SLURM run's tables with its own)."""
+def smoke_tables(slurm_smoke, tmp_path_factory):
+    """A copy of the working tree where the smoke DAG's `tables calibrate` has run (the cluster tests compare a SLURM
+    run with it; smoke_run adds `figures`). With ``--cluster`` it starts once the SLURM run has ended: beside it on
+    2 cores each run has the other's jobs as well as its own (cluster/background.py)."""
     from smoke import copy_tree, run_smoke
 
-    return run_smoke(copy_tree(tmp_path_factory.mktemp("smoke") / "repo"))
+    if slurm_smoke is not None:
+        slurm_smoke.settle()
+    return run_smoke(copy_tree(tmp_path_factory.mktemp("smoke") / "repo"), "tables", "tables", "calibrate")
+
+
+@pytest.fixture(scope="session")
+def smoke_run(smoke_tables):
+    """The tree of smoke_tables where the smoke DAG's `figures` has run too (the integration tests check it)."""
+    from smoke import run_smoke
+
+    return run_smoke(smoke_tables, "figures", "figures")
 
 
 @pytest.fixture(scope="session")

@@ -1,12 +1,14 @@
-"""The workflow on real cluster engines, started on loopback (tests/cluster/engines.py): the smoke DAG through
+"""The workflow on real cluster engines, started on loopback (tests/cluster/engines.py): the smoke DAG of Milan through
 Snakemake's SLURM executor (`--executor slurm --profile profiles/slurm --jobs 4`), logging to an MLflow tracking
-server whose backend store is PostgreSQL, against the local smoke run of the integration tests; and 8 processes
-logging to that server at once.
+server whose backend store is PostgreSQL, against the local smoke run of the integration tests (Milan's per-day
+result files and the tables that one dataset makes); and 8 processes logging to that server at once.
 
 Collected with ``pytest --cluster`` only; the engines must be installed first (``tests/cluster/install.sh``, as root),
 and a missing one fails the tests by name. The engines and the SLURM run start with the session (conftest.slurm_smoke,
-cluster/background.py), so that its jobs use the core the unit tests leave idle; these tests run last. The measurements of the SLURM run (jobs, wall time, core-hours, against
-the local run) are printed in the summary and written to ``results/cluster_run.json`` of its tree.
+cluster/background.py), so that its jobs use the core the unit tests leave idle; the local smoke run starts once it
+has ended (conftest.smoke_tables), and these tests run last. The measurements of the SLURM run (jobs, wall time,
+core-hours, against the local run) are printed in the summary and written to ``results/cluster_run.json`` of its
+tree.
 """
 from __future__ import annotations
 
@@ -17,9 +19,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import polars as pl
 import pytest
 from mlflow.tracking import MlflowClient
 
+from cluster.background import DATASETS
+from conftest import ROOT
+from dswm.config import load_yaml
 from smoke import TIMING
 
 pytestmark = pytest.mark.cluster
@@ -27,6 +33,11 @@ pytestmark = pytest.mark.cluster
 SUBMITTED = re.compile(r"Job (\d+) has been submitted with SLURM jobid (\d+)")
 TRACKED = ("train", "evaluate")
 """The smoke DAG's rules whose jobs are MLflow runs (the `tables calibrate` targets)."""
+METHODS = tuple(load_yaml(ROOT / "config.yaml")["methods"]["run"])
+"""Every configured method: the smoke profile evaluates each of them on Milan (methods.only_on keeps some there)."""
+TIMED = re.compile(r"_ms(_|$)")
+"""The per-day columns that measure time (plan_ms_per_slot, a solver's stat_solve_ms_median): they differ between
+any two runs of a job, every other column is the same number."""
 
 
 @pytest.fixture(scope="module")
@@ -51,13 +62,16 @@ def sacct(ids) -> list[dict]:
     return [dict(zip(fields, line.split("|"))) for line in out.splitlines() if line.strip()]
 
 
-def local_core_hours(work: Path) -> float:
-    """Core-hours of the local smoke run's `tables calibrate` jobs: the wall seconds of every job that has a
-    benchmark file (each runs on one core), less those of the `figures` target."""
+def core_hours(work: Path, only: Path | None = None) -> float:
+    """Core-hours of a smoke run's `tables calibrate` jobs in ``work``: the wall seconds of every job that has a
+    benchmark file (each runs on one core), less those of the `figures` target; with ``only``, of the jobs that have a
+    benchmark file in that tree too."""
     seconds = 0.0
     for tsv in (work / "results" / "benchmarks").rglob("*.tsv"):
-        part = tsv.relative_to(work / "results" / "benchmarks").parts[0]
-        if part in ("extra_train", "extra_evaluate", "probe", "wm", "figures"):
+        rel = tsv.relative_to(work / "results" / "benchmarks")
+        if rel.parts[0] in ("extra_train", "extra_evaluate", "probe", "wm", "figures"):
+            continue
+        if only is not None and not (only / "results" / "benchmarks" / rel).exists():
             continue
         rows = tsv.read_text().splitlines()
         seconds += float(rows[-1].split("\t")[0])
@@ -65,22 +79,25 @@ def local_core_hours(work: Path) -> float:
 
 
 @pytest.fixture(scope="module")
-def slurm_run(engines, slurm_smoke, smoke_run, request):
-    """The smoke DAG's `tables calibrate` in a fresh copy of the tree, every job but the local rules sent to SLURM,
-    every run logged to the tracking server; started with the session (cluster/background.py), awaited here."""
-    rc, text, wall = slurm_smoke.wait(timeout=3600)
+def slurm_run(engines, slurm_smoke, smoke_tables, request):
+    """The Milan smoke DAG's `tables calibrate` in a fresh copy of the tree, every job but the local rules sent to
+    SLURM, every run logged to the tracking server; started with the session (cluster/background.py), awaited here."""
+    rc, text, wall = slurm_smoke.wait()
     assert rc == 0, f"{' '.join(slurm_smoke.argv)} exited with {rc}:\n{text[-8000:]}"
     work = slurm_smoke.work
     submitted = dict(SUBMITTED.findall(text))
     records = sacct(submitted.values())
-    local = json.loads((smoke_run / TIMING).read_text())
+    local = json.loads((smoke_tables / TIMING).read_text())
     summary = {
-        "slurm": {"jobs": len(submitted), "local_rules_jobs": sum(job_stats(text).values()) - len(submitted),
-                  "wall_s": round(wall, 1),
+        "slurm": {"datasets": list(DATASETS), "jobs": len(submitted),
+                  "local_rules_jobs": sum(job_stats(text).values()) - len(submitted), "wall_s": round(wall, 1),
                   "core_hours": round(sum(int(r["CPUTimeRAW"]) for r in records) / 3600, 3),
-                  "beside": "the unit tests and the local smoke run, on the same 2 cores"},
-        "local": {"jobs": sum(job_stats(text).values()), "wall_s": local["tables"],
-                  "core_hours": round(local_core_hours(smoke_run), 3)},
+                  "beside": "the unit tests (pytest --cluster) or nothing (pytest --cluster -m cluster), on 2 cores"},
+        "local": {"datasets": ["milan", "shanghai", "yjmob"],
+                  "jobs": sum(job_stats((smoke_tables / "smoke_tables.out").read_text()).values()),
+                  "wall_s": local["tables"], "core_hours": round(core_hours(smoke_tables), 3),
+                  "core_hours_of_the_slurm_runs_jobs": round(core_hours(smoke_tables, only=work), 3),
+                  "beside": "nothing but the session's pytest, after the SLURM run"},
     }
     (work / "results" / "cluster_run.json").write_text(json.dumps(summary, indent=2))
     reporter = request.config.pluginmanager.get_plugin("terminalreporter")
@@ -93,23 +110,53 @@ def test_every_slurm_job_of_the_smoke_dag_completed(slurm_run):
     text, records = slurm_run["text"], slurm_run["sacct"]
     stats = job_stats(text)
     local = {"tables", "build_tables"}  # the Snakefile's localrules among the targets' jobs
-    assert len(slurm_run["submitted"]) == sum(n for rule, n in stats.items() if rule not in local)
-    assert stats["evaluate"] == 44 and stats["train"] == 19  # every method of the smoke profile went through SLURM
+    assert len(slurm_run["submitted"]) == sum(n for rule, n in stats.items() if rule not in local) == 33
+    # every method of the smoke profile went through SLURM (Milan runs them all), and every trained one's training
+    assert stats["evaluate"] == len(METHODS) == 18 and stats["train"] == 9
+    assert {r: stats[r] for r in ("demo_raw", "prepare", "calibrate", "eda", "mlflow_init", "audit_report")} == \
+        dict.fromkeys(("demo_raw", "prepare", "calibrate", "eda", "mlflow_init", "audit_report"), 1)
     assert sorted(r["JobID"] for r in records) == sorted(slurm_run["submitted"].values())
     assert {(r["State"], r["ExitCode"]) for r in records} == {("COMPLETED", "0:0")}
     assert {r["AllocCPUS"] for r in records} == {"1"}  # each job asked for its rule's one thread
     assert len({r["JobName"] for r in records}) == 1  # one workflow's run id names them all
 
 
-def test_the_tables_equal_the_local_smoke_run_byte_for_byte(slurm_run, smoke_run):
-    names = sorted(p.name for p in (smoke_run / "results" / "tables").glob("*.csv"))
+def test_every_per_day_result_equals_the_local_smoke_runs_but_its_timings(slurm_run, smoke_tables):
+    from dswm.protocol.evaluation import read_method_record
+
+    def days(work):
+        return sorted(str(p.relative_to(work)) for p in (work / "results").glob("*/*/seed*/days.parquet"))
+
+    local = days(smoke_tables)
+    assert days(slurm_run["work"]) == [p for p in local if p.startswith("results/milan/")]
+    assert len(local) > len(days(slurm_run["work"])) == len(METHODS)
+    for rel in days(slurm_run["work"]):
+        ours, theirs = pl.read_parquet(slurm_run["work"] / rel), pl.read_parquet(smoke_tables / rel)
+        timed = [c for c in ours.columns if TIMED.search(c)]
+        assert ours.columns == theirs.columns and "plan_ms_per_slot" in timed, rel
+        assert ours.drop(timed).equals(theirs.drop(timed)), rel
+        assert read_method_record(slurm_run["work"] / rel) == read_method_record(smoke_tables / rel), rel
+    solver = pl.read_parquet(slurm_run["work"] / "results" / "milan" / "jtoratc" / "seed0" / "days.parquet")
+    assert [c for c in solver.columns if TIMED.search(c)] == ["plan_ms_per_slot", "stat_solve_ms_median"]
+
+
+def test_the_tables_equal_the_local_smoke_runs_milan_rows_byte_for_byte(slurm_run, smoke_tables):
+    names = sorted(p.name for p in (smoke_tables / "results" / "tables").glob("*.csv"))
     assert names == ["cross_dataset.csv", "milan_main.csv", "room.csv"]
-    for name in names:
-        assert (slurm_run["work"] / "results" / "tables" / name).read_bytes() == \
-            (smoke_run / "results" / "tables" / name).read_bytes(), name
+    assert sorted(p.name for p in (slurm_run["work"] / "results" / "tables").glob("*.csv")) == names
+    ours = {name: (slurm_run["work"] / "results" / "tables" / name).read_bytes() for name in names}
+    theirs = {name: (smoke_tables / "results" / "tables" / name).read_bytes() for name in names}
+    assert ours["milan_main.csv"] == theirs["milan_main.csv"]  # Table III: Milan's alone
+    for name, column in (("cross_dataset.csv", 1), ("room.csv", 0)):  # the rows of Milan, in the local run's order
+        header, *rows = theirs[name].splitlines(keepends=True)
+        milan = [row for row in rows if row.split(b",")[column] == b"milan"]
+        assert len(rows) > len(milan) > 0, name
+        assert ours[name] == b"".join([header, *milan]), name
 
 
 def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
+    from prep.rawio import sha256_file
+
     client = MlflowClient(tracking_uri=engines.mlflow_uri)
     exp = client.get_experiment_by_name("dswm")
     assert exp is not None, f"no experiment 'dswm' on {engines.mlflow_uri}: the jobs did not log to the server"
@@ -123,13 +170,15 @@ def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
     runs = client.search_runs([exp.experiment_id], filter_string=f"tags.workdir = '{workdir}'", max_results=1000)
     keys = sorted(r.data.tags["job_key"] for r in runs)
     stats = job_stats(slurm_run["text"])
-    assert len(keys) == sum(stats[rule] for rule in TRACKED) == 63
+    assert len(keys) == sum(stats[rule] for rule in TRACKED) == 27
     assert len(set(keys)) == len(keys)  # one run per job
     assert {r.info.status for r in runs} == {"FINISHED"}
     evaluations = [r for r in runs if r.data.tags["stage"] == "evaluate"]
+    assert sorted(r.data.tags["method"] for r in evaluations) == sorted(METHODS)
+    tensor = sha256_file(slurm_run["work"] / "results" / "data" / "milan" / "demand.parquet")[:16]
     for r in evaluations:  # each carries its demand tensor and its result file
         (entry,) = r.inputs.dataset_inputs
-        assert entry.dataset.name == r.data.tags["dataset"]
+        assert (entry.dataset.name, entry.dataset.digest) == (r.data.tags["dataset"], tensor) == ("milan", tensor)
     one = next(r for r in evaluations if r.data.tags["job_key"] == "evaluate/milan/greedy/seed0")
     assert "days.parquet" in [a.path for a in client.list_artifacts(one.info.run_id)]
     assert {"id/sr_mean", "ood/sr_mean"} <= set(one.data.metrics)
