@@ -49,3 +49,17 @@ def test_helper_functions_live_in_common_smk():
     assert {"probe_files", "main_days", "wm_model", "_alternatives"} <= set(defined["common.smk"])
     elsewhere = {name: funcs for name, funcs in defined.items() if name != "common.smk"}
     assert elsewhere == {}, f"move these helper functions into workflow/rules/common.smk: {elsewhere}"
+
+
+def test_the_dataset_wildcard_takes_the_datasets_the_config_knows():
+    """The `dataset` constraint is built from config.yaml's `datasets:` section, not written out: common.smk names
+    no dataset, and the section's datasets are the three the constraint allowed when it was written by hand."""
+    import yaml
+
+    from prep.config import DATASETS
+
+    common = (ROOT / "workflow" / "rules" / "common.smk").read_text()
+    assert "dataset=_alternatives(KNOWN_DATASETS)," in common
+    assert [name for name in DATASETS if name in common] == []
+    config = yaml.safe_load((ROOT / "config.yaml").read_text())
+    assert [name for name in config["datasets"] if name in DATASETS] == ["milan", "shanghai", "yjmob"]

@@ -11,6 +11,7 @@ from snakemake.exceptions import WorkflowError
 
 from dswm import settings as S
 from dswm.config import ConfigError
+from prep.config import DATASETS as DATASET_NAMES
 
 
 def config_sources():
@@ -67,8 +68,20 @@ of every job that reads u (select, train, evaluate, audit_report), which takes u
 them (the record is an input; their settings slices hold `calibrate`, not the number)."""
 
 
+def _alternatives(names):
+    """A wildcard constraint matching exactly ``names`` (none: nothing)."""
+    import re
+
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+KNOWN_DATASETS = [name for name in config["datasets"] if name in DATASET_NAMES]
+"""Every dataset the config's `datasets:` section holds (its keys but `common`, names prep.config.DATASETS knows;
+the schema requires each): the values of the `dataset` wildcard. A profile runs some of them."""
+
+
 wildcard_constraints:
-    dataset="milan|shanghai|yjmob",
+    dataset=_alternatives(KNOWN_DATASETS),
     method=r"[a-z][a-z0-9_]*",
     seed=r"\d+",
 
@@ -218,13 +231,6 @@ def figure_attach(stages, datasets=None, methods=None):
 
 
 # The extra runs (extra.smk): EXTRA_VARIANTS, FIG_DATASET and the extra_* rules are defined there.
-def _alternatives(names):
-    """A wildcard constraint matching exactly ``names`` (none: nothing)."""
-    import re
-
-    return "|".join(re.escape(n) for n in names) or "(?!)"
-
-
 def extra_model(wildcards):
     """The model an extra evaluation loads: its training source's, from the main `train` rule when the variant
     does not change the source's train slice, else from `extra_train` (none for a method that does not learn)."""

@@ -14,7 +14,7 @@ WM_DATASET = FIGURES_SETTINGS.dataset
 WM_DIR = "results/extra/{dataset}/wm_quality/seed{seed}"
 MILAN_ASSETS = Path(workflow.basedir) / "src" / "prep" / "assets" / "milan"
 CONDITIONAL_RULES.update({"wm_quality", "figure_wm_quality", "figure_training", "figure_qualitative_trajectories",
-                          *(f"figure_qualitative_{d}" for d in ("milan", "shanghai", "yjmob"))})
+                          *(f"figure_qualitative_{d}" for d in KNOWN_DATASETS)})
 """The rules below are defined only when the profile runs what they draw; `resources.rules` may name them all."""
 
 
