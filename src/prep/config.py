@@ -4,13 +4,16 @@ Every key is required (config.yaml writes every default out); an unknown or miss
 names its dotted path. Building the section (or one dataset's) also checks each split, evaluation days and
 ``allow_empty_days`` (``prep.days.check_days``), so these mistakes stop the workflow when settings are
 resolved. Build with `datasets_config(config["datasets"])`, or one dataset's section with
-`dataset_from_plain(name, section)`.
+`dataset_from_plain(name, section)`. The split, evaluation-day and week-recovery sections live in ``prep.sections``,
+below this module and ``prep.days``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
 
+from prep.days import check_days
+from prep.sections import EvalDays, Split, WeekRecovery
 from prep.typed import ConfigError, build
 
 DATASETS = ("milan", "shanghai", "yjmob")
@@ -23,44 +26,6 @@ class CommonPrep:
     norm_percentile: float  # percentile of TRAINING cell-slot values used to normalize (99 per docs/PROTOCOL.md §4)
     kappa_reference: str  # dataset whose training mean is the kappa reference ("milan")
     top_share_frac: float  # fraction of cells in the "top cells" share statistic (0.05)
-
-
-@dataclass(frozen=True, kw_only=True)
-class Segment:
-    """A temporal segment, inclusive on both ends (ISO dates, or day numbers for YJMob)."""
-
-    first: str
-    last: str
-
-
-@dataclass(frozen=True, kw_only=True)
-class Split:
-    train: tuple[str, str]
-    test: tuple[str, str]
-
-    def segments(self) -> dict[str, Segment]:
-        """Returns {"train": Segment, "test": Segment}."""
-        return {"train": Segment(first=self.train[0], last=self.train[1]),
-                "test": Segment(first=self.test[0], last=self.test[1])}
-
-
-@dataclass(frozen=True, kw_only=True)
-class EvalRule:
-    """How evaluation days are picked from the test segment.
-
-    rule: "test_positions" (values = positions within the test segment), "first_weekdays" (the first
-    `count` test days that are not (pseudo-)weekend) or "first_weekend" (the first `count` that are).
-    """
-
-    rule: Literal["test_positions", "first_weekdays", "first_weekend"]
-    values: tuple[int, ...]
-    count: int
-
-
-@dataclass(frozen=True, kw_only=True)
-class EvalDays:
-    id: EvalRule
-    ood: EvalRule
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -156,13 +121,6 @@ class ShanghaiConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
-class WeekRecovery:
-    min_lag: int
-    max_lag: int
-    n_weekend_phases: int
-
-
-@dataclass(frozen=True, kw_only=True)
 class YJMobConfig:
     source: Literal["demo", "raw"]
     raw_files: tuple[str, ...]
@@ -186,8 +144,6 @@ DatasetConfig = MilanConfig | ShanghaiConfig | YJMobConfig
 
 def _check_days(cfg: DatasetConfig, dataset: str) -> None:
     """The split, evaluation days and empty-day allowance of a section built from config (at parse time)."""
-    from prep.days import check_days  # prep.days imports this module
-
     check_days(cfg, dataset)
 
 
