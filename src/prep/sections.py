@@ -14,13 +14,17 @@ class Segment:
     """A temporal segment, inclusive on both ends (ISO dates, or day numbers for YJMob)."""
 
     first: str
+    """First day (an ISO date, or a day number for YJMob)."""
     last: str
+    """Last day, inclusive."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class Split:
     train: tuple[str, str]
+    """[first, last] training days, inclusive."""
     test: tuple[str, str]
+    """[first, last] test days, inclusive."""
 
     def segments(self) -> dict[str, Segment]:
         """Returns {"train": Segment, "test": Segment}."""
@@ -37,18 +41,26 @@ class EvalRule:
     """
 
     rule: Literal["test_positions", "first_weekdays", "first_weekend"]
+    """``test_positions``, ``first_weekdays`` or ``first_weekend`` (see above)."""
     values: tuple[int, ...]
+    """Positions in the test segment (``test_positions`` only)."""
     count: int
+    """How many days the ``first_*`` rules pick."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class EvalDays:
     id: EvalRule
+    """The rule of the in-distribution evaluation days."""
     ood: EvalRule
+    """The rule of the out-of-distribution evaluation days."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class WeekRecovery:
     min_lag: int
+    """Smallest candidate period, days."""
     max_lag: int
+    """Largest candidate period, days."""
     n_weekend_phases: int
+    """The lowest-activity phases of the cycle that form the pseudo-weekend."""
