@@ -1,0 +1,101 @@
+"""docs/ARCHITECTURE.md names code; every name it gives as code must exist, so the page cannot drift silently.
+
+The page states its convention at the top ("Names in this page"): a dotted name in backticks or in a code block
+that starts with ``dswm``, ``prep`` or ``audits`` is a full path; in a section whose heading names a module in
+backticks, a code-block line that starts (in its first column) with ``name(`` or ``a.b(`` names something of
+that module. Each such name is imported: the longest importable module prefix, then attributes.
+"""
+import importlib
+import inspect
+import re
+import sys
+
+import pytest
+
+from conftest import ROOT
+
+DOC = ROOT / "docs" / "ARCHITECTURE.md"
+PACKAGES = ("dswm", "prep", "audits")
+DOTTED = r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*"
+
+
+def _is_absolute(name: str) -> bool:
+    return name.split(".", 1)[0] in PACKAGES
+
+
+def doc_names(text: str) -> dict[str, int]:
+    """{dotted name: first line} of every name the page gives as code, by the convention above."""
+    names: dict[str, int] = {}
+    base, in_block = None, False
+    for number, line in enumerate(text.splitlines(), 1):
+        if line.startswith("```"):
+            in_block = not in_block
+            continue
+        if not in_block and line.startswith("#"):
+            heading = re.search(r"`(" + DOTTED + r")`", line)
+            base = heading.group(1) if heading and _is_absolute(heading.group(1)) else None
+            continue
+        if in_block:
+            found = [m.group(1) for m in re.finditer(r"(?<![\w./<-])(" + DOTTED + r")", line)]
+            found = [n for n in found if "." in n and _is_absolute(n)]
+            lead = re.match(r"(" + DOTTED + r")\(", line)
+            if lead and base and not _is_absolute(lead.group(1)):
+                found.append(f"{base}.{lead.group(1)}")
+        else:
+            found = [n for n in re.findall(r"`(" + DOTTED + r")`", line) if _is_absolute(n)]
+        for name in found:
+            names.setdefault(name, number)
+    return names
+
+
+def resolves(name: str) -> bool:
+    """True when ``name`` is a module, or attributes of the longest importable module prefix of it; a class or
+    function named right under a module must be defined there, or be one of its declared names (``__all__``): a
+    module that merely imports it is not where the page may place it."""
+    parts = name.split(".")
+    for cut in range(len(parts), 0, -1):
+        module = ".".join(parts[:cut])
+        try:
+            obj = importlib.import_module(module)
+        except ImportError:
+            continue
+        try:
+            for i, attr in enumerate(parts[cut:]):
+                obj = getattr(obj, attr)
+                if i == 0 and (inspect.isclass(obj) or inspect.isfunction(obj)) and obj.__module__ != module \
+                        and attr not in getattr(sys.modules[module], "__all__", ()):
+                    return False
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
+def test_every_name_the_architecture_page_gives_as_code_exists():
+    names = doc_names(DOC.read_text())
+    assert len(names) > 100                       # the page names the code throughout
+    missing = [f"{name} (line {line})" for name, line in names.items() if not resolves(name)]
+    assert missing == [], f"docs/ARCHITECTURE.md names code that does not exist: {missing}"
+
+
+def test_the_page_states_the_convention():
+    head = DOC.read_text().split("\n## ", 1)[0]
+    assert "tests/test_architecture_doc.py" in head and "Names in this page" in head
+
+
+@pytest.mark.parametrize("name, exists", [("dswm.sim.physics.served_ratio", True), ("dswm.sim.physics", True),
+                                          ("dswm.sim.physics.no_such_name", False), ("dswm.no_such_module", False),
+                                          ("prep.atomic.write_json", True),
+                                          ("dswm.methods.dswm.agent.Controller", False)])    # imported there only
+def test_the_check_resolves_names(name, exists):
+    assert resolves(name) is exists
+
+
+def test_the_reader_follows_the_convention():
+    text = "\n".join([
+        "# Title", "Prose with `dswm.sim.physics` and `Controller.fit` (relative in prose: not read).",
+        "## Pipeline (`dswm.pipeline`)", "```", "jobs.train_job(*, job) -> manifest",
+        "    continued(x)        # an indented line: not a name", "tracking.init_store(*, store)  see prep.tensor.load",
+        "```", "## Other", "```", "free(x) -> y", "```"])
+    assert doc_names(text) == {"dswm.sim.physics": 2, "dswm.pipeline.jobs.train_job": 5,
+                               "dswm.pipeline.tracking.init_store": 7, "prep.tensor.load": 7}
