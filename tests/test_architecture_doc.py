@@ -3,7 +3,8 @@
 The page states its convention at the top ("Names in this page"): a dotted name in backticks or in a code block
 that starts with ``dswm``, ``prep`` or ``audits`` is a full path; in a section whose heading names a module in
 backticks, a code-block line that starts (in its first column) with ``name(`` or ``a.b(`` names something of
-that module. Each such name is imported: the longest importable module prefix, then attributes.
+that module, as does every further ``name(`` on that line after two spaces or ``; `` (before a ``  #`` comment).
+Each such name is imported: the longest importable module prefix, then attributes.
 """
 import importlib
 import inspect
@@ -38,9 +39,10 @@ def doc_names(text: str) -> dict[str, int]:
         if in_block:
             found = [m.group(1) for m in re.finditer(r"(?<![\w./<-])(" + DOTTED + r")", line)]
             found = [n for n in found if "." in n and _is_absolute(n)]
-            lead = re.match(r"(" + DOTTED + r")\(", line)
-            if lead and base and not _is_absolute(lead.group(1)):
-                found.append(f"{base}.{lead.group(1)}")
+            if base and re.match(DOTTED + r"\(", line):           # a line that starts with a call form
+                code = line.split("  #", 1)[0]
+                calls = re.findall(r"(?:^|  |; )(" + DOTTED + r")\(", code)
+                found += [f"{base}.{n}" for n in calls if not _is_absolute(n)]
         else:
             found = [n for n in re.findall(r"`(" + DOTTED + r")`", line) if _is_absolute(n)]
         for name in found:
@@ -94,8 +96,8 @@ def test_the_check_resolves_names(name, exists):
 def test_the_reader_follows_the_convention():
     text = "\n".join([
         "# Title", "Prose with `dswm.sim.physics` and `Controller.fit` (relative in prose: not read).",
-        "## Pipeline (`dswm.pipeline`)", "```", "jobs.train_job(*, job) -> manifest",
+        "## Pipeline (`dswm.pipeline`)", "```", "jobs.train_job(*, job) -> manifest; jobs.f(x)  # not_read(y)",
         "    continued(x)        # an indented line: not a name", "tracking.init_store(*, store)  see prep.tensor.load",
         "```", "## Other", "```", "free(x) -> y", "```"])
-    assert doc_names(text) == {"dswm.sim.physics": 2, "dswm.pipeline.jobs.train_job": 5,
+    assert doc_names(text) == {"dswm.sim.physics": 2, "dswm.pipeline.jobs.train_job": 5, "dswm.pipeline.jobs.f": 5,
                                "dswm.pipeline.tracking.init_store": 7, "prep.tensor.load": 7}
