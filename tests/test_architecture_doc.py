@@ -50,10 +50,17 @@ def doc_names(text: str) -> dict[str, int]:
     return names
 
 
+def _home(obj, attr: str, module: str) -> bool:
+    """``obj`` (``module``'s ``attr``) is defined in ``module`` or below it (a package's own submodule), or
+    ``module`` declares it in ``__all__``."""
+    return obj.__module__ == module or obj.__module__.startswith(module + ".") \
+        or attr in getattr(sys.modules[module], "__all__", ())
+
+
 def resolves(name: str) -> bool:
     """True when ``name`` is a module, or attributes of the longest importable module prefix of it; a class or
-    function named right under a module must be defined there, or be one of its declared names (``__all__``): a
-    module that merely imports it is not where the page may place it."""
+    function named right under a module must be defined there or in a submodule of that package, or be one of its
+    declared names (``__all__``): a module that merely imports it from elsewhere is not where the page may place it."""
     parts = name.split(".")
     for cut in range(len(parts), 0, -1):
         module = ".".join(parts[:cut])
@@ -64,8 +71,7 @@ def resolves(name: str) -> bool:
         try:
             for i, attr in enumerate(parts[cut:]):
                 obj = getattr(obj, attr)
-                if i == 0 and (inspect.isclass(obj) or inspect.isfunction(obj)) and obj.__module__ != module \
-                        and attr not in getattr(sys.modules[module], "__all__", ()):
+                if i == 0 and (inspect.isclass(obj) or inspect.isfunction(obj)) and not _home(obj, attr, module):
                     return False
         except AttributeError:
             return False
@@ -101,3 +107,18 @@ def test_the_reader_follows_the_convention():
         "```", "## Other", "```", "free(x) -> y", "```"])
     assert doc_names(text) == {"dswm.sim.physics": 2, "dswm.pipeline.jobs.train_job": 5, "dswm.pipeline.jobs.f": 5,
                                "dswm.pipeline.tracking.init_store": 7, "prep.tensor.load": 7}
+
+
+def test_a_package_may_present_the_names_of_its_submodules(tmp_path, monkeypatch):
+    """A package that re-exports what its submodules define (``dswm.settings`` as a package) passes; a module that
+    imports a name from a sibling does not become its home."""
+    pkg = tmp_path / "docpkg"
+    (pkg / "inner").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "base.py").write_text("def helper():\n    pass\n")
+    (pkg / "user.py").write_text("from docpkg.base import helper\n")
+    (pkg / "inner" / "__init__.py").write_text("from docpkg.inner.part import resolve\n")
+    (pkg / "inner" / "part.py").write_text("def resolve():\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert resolves("docpkg.base.helper") and resolves("docpkg.inner.resolve")
+    assert not resolves("docpkg.user.helper")
