@@ -18,7 +18,7 @@ from dswm.methods import registry
 from dswm.methods.base import DayContext
 from dswm.methods.dswm import planner as planner_mod
 from dswm.methods.dswm.modules import symlog
-from dswm.methods.dswm.planner import imagined_step
+from dswm.methods.dswm.planner import ImaginedWorld, StepScoring, imagined_step
 from dswm.methods.dswm.rssm import RSSMConfig
 from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
 from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs, initial_positions
@@ -67,24 +67,28 @@ def test_scaled_imagination_scores_s_times_the_imagined_demand(scenario, s):
                                                  np.full((k, 1), 0.8), np.tile([[1, 0, 0, 0]], (k, 1))], 1),
                                  grid, scenario).expand(4)
     act = torch.rand(4, k, 3) * 2 - 1
-    common = dict(x_prev=None, assoc=None, x_now=x_now, cells=grid.cells(), geom=grid.geometry(), scenario=scenario,
-                  params=ServiceParams.from_scenario(scenario), rho=rho, lambda_u=0.0, continuation="hold",
-                  first=True)
+    world = ImaginedWorld(cells=grid.cells(), geom=grid.geometry(), scenario=scenario,
+                          params=ServiceParams.from_scenario(scenario))
+    common = dict(x_prev=None, assoc=None, x_now=x_now, world=world, first=True)
+
+    def scoring(scale=1.0, lambda_u=0.0):
+        return StepScoring(rho=rho, lambda_u=lambda_u, continuation="hold", scale=scale)
+
     state = model.rssm.initial(4)
-    *_, x1, _, r1 = imagined_step(model, fleet, state, act, x_true=None, **common)
-    *_, xs, _, rs = imagined_step(model, fleet, state, act, x_true=None, scale=s, **common)
+    *_, x1, _, r1 = imagined_step(model, fleet, state, act, x_true=None, scoring=scoring(), **common)
+    *_, xs, _, rs = imagined_step(model, fleet, state, act, x_true=None, scoring=scoring(s), **common)
     want = s * (rho * x_now + (1 - rho) * maps.mean(0))           # s x the anchored ensemble mean, by hand
     torch.testing.assert_close(xs, want.expand(4, -1), rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(xs, s * x1)
     assert float((rs - r1).abs().max()) > 1e-3                    # the physics head serves another demand
     # the uncertainty term is relative to the scored demand: the same u at every s
-    u1 = -imagined_step(model, fleet, state, act, x_true=None, **{**common, "lambda_u": 1.0})[-1] + r1
-    us = -imagined_step(model, fleet, state, act, x_true=None, scale=s, **{**common, "lambda_u": 1.0})[-1] + rs
+    u1 = -imagined_step(model, fleet, state, act, x_true=None, scoring=scoring(lambda_u=1.0), **common)[-1] + r1
+    us = -imagined_step(model, fleet, state, act, x_true=None, scoring=scoring(s, 1.0), **common)[-1] + rs
     torch.testing.assert_close(us, u1)
     assert float(u1.min()) > 0
     truth = torch.rand(g) + 0.1
-    *_, t1, _, _ = imagined_step(None, fleet, None, act, x_true=truth, **common)
-    *_, ts, _, _ = imagined_step(None, fleet, None, act, x_true=truth, scale=s, **common)
+    *_, t1, _, _ = imagined_step(None, fleet, None, act, x_true=truth, scoring=scoring(), **common)
+    *_, ts, _, _ = imagined_step(None, fleet, None, act, x_true=truth, scoring=scoring(s), **common)
     torch.testing.assert_close(ts, s * t1)
 
 

@@ -155,3 +155,36 @@ def test_one_config_error_and_no_script_reads_the_whole_config():
     assert defined == ["src/prep/typed.py"]      # below prep and dswm; dswm.config hands it to every dswm module
     readers = [p.name for p in (ROOT / "workflow" / "scripts").glob("*.py") if "snakemake.config" in p.read_text()]
     assert readers == []
+
+
+def prep_import_cycles(src: Path = ROOT / "src") -> list[list[str]]:
+    """Every cycle of the import graph of ``src/prep`` (function-level imports included), each as the modules it
+    passes through, starting from its smallest name."""
+    modules = {".".join(p.relative_to(src).with_suffix("").parts).removesuffix(".__init__"): p
+               for p in sorted((src / "prep").rglob("*.py"))}
+    graph = {m: sorted({t for _, module, names in imports_of(p) for t in [module] + [f"{module}.{n}" for n in names]
+                        if t in modules and t != m}) for m, p in modules.items()}
+    cycles = set()
+
+    def walk(node, path):
+        for nxt in graph[node]:
+            if nxt in path:
+                cycle = path[path.index(nxt):]
+                i = cycle.index(min(cycle))
+                cycles.add(tuple(cycle[i:] + cycle[:i]))
+            elif len(path) < len(graph):
+                walk(nxt, path + [nxt])
+
+    for start in graph:
+        walk(start, [start])
+    return sorted(map(list, cycles))
+
+
+def test_prep_has_no_import_cycle(tmp_path):
+    """prep.config builds the sections that prep.days checks; the shared dataclasses sit below both
+    (prep.sections), so neither module needs the other's lazily."""
+    assert prep_import_cycles() == []
+    (tmp_path / "prep").mkdir()
+    (tmp_path / "prep" / "config.py").write_text("from prep.days import check_days\n")
+    (tmp_path / "prep" / "days.py").write_text("def f():\n    from prep.config import Split\n")
+    assert prep_import_cycles(tmp_path) == [["prep.config", "prep.days"]]

@@ -13,7 +13,8 @@ from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs
 from dswm.sim.env import synthetic_demand
 from dswm.sim.fleet import ACTIVE, CHARGING, RETURNING, available, fleet_step
 from dswm.sim.physics import ServiceParams, served_ratio
-from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, PlannerConfig, anchor, cem
+from dswm.methods.dswm.planner import (AnchoredCEMPlanner, ImaginationScorer, ImaginedWorld, PlannerConfig, StepScoring,
+                                       anchor, cem)
 from dswm.methods.dswm.rssm import RSSMConfig
 from dswm.methods.dswm.modules import symlog
 from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
@@ -83,9 +84,10 @@ def test_scorer_rolls_fleet_and_scores_anchored_demand(scenario):
                                   grid, scenario)
     actions = torch.rand(4, 5, k, 3) * 2 - 1              # N=4 candidates, H=5
     gamma, rho, lam = 0.9, 0.95, 1.0
-    scorer = ImaginationScorer(model=model, latent=model.rssm.initial(1), fleet=fleet0, x_now=x_now, geom=geom,
-                               scenario=scenario, params=params, cells=cells, gamma=gamma, rho=rho, lambda_u=lam,
-                               continuation="hold", compile=False)
+    scorer = ImaginationScorer(model=model, latent=model.rssm.initial(1), fleet=fleet0, x_now=x_now,
+                               world=ImaginedWorld(cells=cells, geom=geom, scenario=scenario, params=params),
+                               scoring=StepScoring(rho=rho, lambda_u=lam, continuation="hold"), gamma=gamma,
+                               compile=False)
     got = scorer(actions)
     # independent computation: anchored mean map and relative spread are the same at every step
     heads = rho * x_now + (1 - rho) * maps                  # (E, G)
@@ -116,9 +118,10 @@ def test_imagination_agrees_with_environment_including_battery_returns(scenario,
     actions = torch.as_tensor(rng.uniform(-1, 1, (horizon, scenario.n_uavs, 3)).astype(np.float32))
     truth = torch.as_tensor(demand[0, t0 + 1:t0 + 1 + horizon].reshape(horizon, -1))
     fleet = fleet_state_from_obs(obs["fleet"][0], grid, scenario)
-    scorer = ImaginationScorer(model=None, latent=None, fleet=fleet, x_now=truth[0], geom=geom, scenario=scenario,
-                               params=params, cells=cells, gamma=gamma, rho=0.95, lambda_u=1.0,
-                               continuation=continuation, compile=False, demand_override=truth)
+    scorer = ImaginationScorer(model=None, latent=None, fleet=fleet, x_now=truth[0],
+                               world=ImaginedWorld(cells=cells, geom=geom, scenario=scenario, params=params),
+                               scoring=StepScoring(rho=0.95, lambda_u=1.0, continuation=continuation), gamma=gamma,
+                               compile=False, demand_override=truth)
     imagined = float(scorer(actions.unsqueeze(0))[0])
     taken = scorer.last_actions[0]                         # the sequence with the continuation applied
     assert torch.equal(taken[0], actions[0])               # the executed first action is the sampled one
@@ -177,8 +180,9 @@ def test_compiled_imagination_matches_the_eager_one(scenario, use_model):
     truth = torch.rand(horizon, g) * 3.0
     actions = torch.rand(8, horizon, k, 3) * 2 - 1
     common = dict(model=model if use_model else None, latent=model.rssm.initial(1) if use_model else None,
-                  fleet=fleet, x_now=torch.rand(g), geom=geom, scenario=scenario, params=params, cells=cells,
-                  gamma=0.9, rho=0.9, lambda_u=1.0, continuation="lloyd",
+                  fleet=fleet, x_now=torch.rand(g),
+                  world=ImaginedWorld(cells=cells, geom=geom, scenario=scenario, params=params),
+                  scoring=StepScoring(rho=0.9, lambda_u=1.0, continuation="lloyd"), gamma=0.9,
                   demand_override=None if use_model else truth)
     eager, compiled = ImaginationScorer(**common, compile=False), ImaginationScorer(**common, compile=True)
     want = eager(actions)

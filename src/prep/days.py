@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from prep.typed import ConfigError
-from prep.config import EvalDays, EvalRule, Split, WeekRecovery
+from prep.sections import EvalDays, EvalRule, Split, WeekRecovery
 from prep.rawio import PrepError, describe_files
 
 

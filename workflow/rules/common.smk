@@ -11,6 +11,7 @@ from snakemake.exceptions import WorkflowError
 
 from dswm import settings as S
 from dswm.config import ConfigError
+from prep.config import DATASETS as DATASET_NAMES
 
 
 def config_sources():
@@ -67,8 +68,20 @@ of every job that reads u (select, train, evaluate, audit_report), which takes u
 them (the record is an input; their settings slices hold `calibrate`, not the number)."""
 
 
+def _alternatives(names):
+    """A wildcard constraint matching exactly ``names`` (none: nothing)."""
+    import re
+
+    return "|".join(re.escape(n) for n in names) or "(?!)"
+
+
+KNOWN_DATASETS = [name for name in config["datasets"] if name in DATASET_NAMES]
+"""Every dataset the config's `datasets:` section holds (its keys but `common`, names prep.config.DATASETS knows;
+the schema requires each): the values of the `dataset` wildcard. A profile runs some of them."""
+
+
 wildcard_constraints:
-    dataset="milan|shanghai|yjmob",
+    dataset=_alternatives(KNOWN_DATASETS),
     method=r"[a-z][a-z0-9_]*",
     seed=r"\d+",
 
@@ -215,3 +228,55 @@ def figure_attach(stages, datasets=None, methods=None):
     return S.Untracked({"mlflow": TRACKING.value, "profile": PROFILE, "stages": list(stages),
                         "datasets": None if datasets is None else list(datasets),
                         "methods": None if methods is None else list(methods)})
+
+
+# The extra runs (extra.smk): EXTRA_VARIANTS, FIG_DATASET and the extra_* rules are defined there.
+def extra_model(wildcards):
+    """The model an extra evaluation loads: its training source's, from the main `train` rule when the variant
+    does not change the source's train slice, else from `extra_train` (none for a method that does not learn)."""
+    if not learns(wildcards.method):
+        return {}
+    variant = EXTRA_VARIANTS[wildcards.variant]
+    source = {**dict(wildcards.items()), "method": SETTINGS.methods[wildcards.method].training_source}
+    producer = rules.extra_train if S.variant_retrains(SETTINGS, wildcards.method, variant) else rules.train
+    return {"model": producer.output.model.format(**source), "manifest": producer.output.manifest.format(**source)}
+
+
+def extra_days(kinds):
+    """The days.parquet of every extra run of the variant kinds ``kinds`` ("do", "K", "u")."""
+    return [rules.extra_evaluate.output.days.format(dataset=FIG_DATASET, variant=v, method=m, seed=s)
+            for v, m, s in S.extra_jobs(SETTINGS) if EXTRA_VARIANTS[v].kind in kinds]
+
+
+def main_days(methods, seeds):
+    """The main evaluations' days.parquet of ``methods`` and ``seeds`` on `figures.dataset`."""
+    return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
+
+
+# The sample-efficiency probe (probes.smk): PROBE_JOBS and the probe rule are defined there.
+def probe_files():
+    """The probe file of every probe job of the profile (audit.smk reads those that exist)."""
+    return [rules.probe.output.probe.format(dataset=d, method=m, seed=s) for d, m, s in PROBE_JOBS]
+
+
+# DSWM's own figures (wm.smk): WM_METHOD, WM_DIR and the wm_quality rule are defined there.
+def dswm_runs_on(dataset):
+    """True when the profile trains and evaluates WM_METHOD on ``dataset``."""
+    return dataset in DATASETS and WM_METHOD in TRAINED and WM_METHOD in SETTINGS.methods_on(dataset)
+
+
+def wm_model(wildcards):
+    """The model, training manifest and main days.parquet of WM_METHOD for the quality job's (dataset, seed)."""
+    keys = {"dataset": wildcards.dataset, "method": WM_METHOD, "seed": wildcards.seed}
+    return {"model": rules.train.output.model.format(**keys), "manifest": rules.train.output.manifest.format(**keys),
+            "main_days": rules.evaluate.output.days.format(**keys)}
+
+
+def wm_files(dataset, name):
+    """The quality job's ``name`` file of every main seed of ``dataset``."""
+    return [f"{WM_DIR}/{name}".format(dataset=dataset, seed=s) for s in SETTINGS.seeds(dataset)]
+
+
+def main_run(dataset, method, seed, output="days"):
+    """A main evaluation's output file."""
+    return getattr(rules.evaluate.output, output).format(dataset=dataset, method=method, seed=seed)

@@ -25,35 +25,6 @@ for _v, _m, _s in S.extra_jobs(SETTINGS):  # a do variant of a method without an
         raise WorkflowError(CONFIG_SOURCES.relabel(str(err))) from None
 
 
-def _alternatives(names):
-    """A wildcard constraint matching exactly ``names`` (none: nothing)."""
-    import re
-
-    return "|".join(re.escape(n) for n in names) or "(?!)"
-
-
-def extra_model(wildcards):
-    """The model an extra evaluation loads: its training source's, from the main `train` rule when the variant
-    does not change the source's train slice, else from `extra_train` (none for a method that does not learn)."""
-    if not learns(wildcards.method):
-        return {}
-    variant = EXTRA_VARIANTS[wildcards.variant]
-    source = {**dict(wildcards.items()), "method": SETTINGS.methods[wildcards.method].training_source}
-    producer = rules.extra_train if S.variant_retrains(SETTINGS, wildcards.method, variant) else rules.train
-    return {"model": producer.output.model.format(**source), "manifest": producer.output.manifest.format(**source)}
-
-
-def extra_days(kinds):
-    """The days.parquet of every extra run of the variant kinds ``kinds`` ("do", "K", "u")."""
-    return [rules.extra_evaluate.output.days.format(dataset=FIG_DATASET, variant=v, method=m, seed=s)
-            for v, m, s in S.extra_jobs(SETTINGS) if EXTRA_VARIANTS[v].kind in kinds]
-
-
-def main_days(methods, seeds):
-    """The main evaluations' days.parquet of ``methods`` and ``seeds`` on `figures.dataset`."""
-    return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
-
-
 rule extra_train:
     input:
         tensor=rules.prepare.output.tensor,

@@ -12,11 +12,6 @@ PROBE_METHODS = S.probed_methods(SETTINGS)
 PROBE_DIR = "results/probes/{dataset}/{method}/seed{seed}"
 
 
-def probe_files():
-    """The probe file of every probe job of the profile (audit.smk reads those that exist)."""
-    return [rules.probe.output.probe.format(dataset=d, method=m, seed=s) for d, m, s in PROBE_JOBS]
-
-
 rule probe:
     input:
         snapshots=rules.train.output.snapshots,  # the model snapshots of the same (dataset, method, seed)

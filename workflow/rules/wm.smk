@@ -14,30 +14,8 @@ WM_DATASET = FIGURES_SETTINGS.dataset
 WM_DIR = "results/extra/{dataset}/wm_quality/seed{seed}"
 MILAN_ASSETS = Path(workflow.basedir) / "src" / "prep" / "assets" / "milan"
 CONDITIONAL_RULES.update({"wm_quality", "figure_wm_quality", "figure_training", "figure_qualitative_trajectories",
-                          *(f"figure_qualitative_{d}" for d in ("milan", "shanghai", "yjmob"))})
+                          *(f"figure_qualitative_{d}" for d in KNOWN_DATASETS)})
 """The rules below are defined only when the profile runs what they draw; `resources.rules` may name them all."""
-
-
-def dswm_runs_on(dataset):
-    """True when the profile trains and evaluates WM_METHOD on ``dataset``."""
-    return dataset in DATASETS and WM_METHOD in TRAINED and WM_METHOD in SETTINGS.methods_on(dataset)
-
-
-def wm_model(wildcards):
-    """The model, training manifest and main days.parquet of WM_METHOD for the quality job's (dataset, seed)."""
-    keys = {"dataset": wildcards.dataset, "method": WM_METHOD, "seed": wildcards.seed}
-    return {"model": rules.train.output.model.format(**keys), "manifest": rules.train.output.manifest.format(**keys),
-            "main_days": rules.evaluate.output.days.format(**keys)}
-
-
-def wm_files(dataset, name):
-    """The quality job's ``name`` file of every main seed of ``dataset``."""
-    return [f"{WM_DIR}/{name}".format(dataset=dataset, seed=s) for s in SETTINGS.seeds(dataset)]
-
-
-def main_run(dataset, method, seed, output="days"):
-    """A main evaluation's output file."""
-    return getattr(rules.evaluate.output, output).format(dataset=dataset, method=method, seed=seed)
 
 
 if WM_METHOD in TRAINED:

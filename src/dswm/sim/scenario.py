@@ -41,15 +41,25 @@ class Rotor:
     """Rotary-wing power model constants (Zeng, Xu, Zhang 2019)."""
 
     weight_n: float
+    """W, aircraft weight, N."""
     air_density: float
+    """rho_air, air density, kg/m^3."""
     rotor_radius_m: float
+    """R, rotor radius, m."""
     disc_area_m2: float
+    """A, rotor disc area, m^2."""
     blade_angular_velocity: float
+    """Omega, blade angular velocity, rad/s."""
     tip_speed_mps: float
+    """U_tip, tip speed of the rotor blade, m/s."""
     rotor_solidity: float
+    """s, rotor solidity."""
     fuselage_drag_ratio: float
+    """d0, fuselage drag ratio."""
     induced_power_correction: float
+    """k, incremental correction factor of the induced power."""
     profile_drag_coefficient: float
+    """delta, profile drag coefficient."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -69,30 +79,52 @@ class Scenario:
     """All scenario constants of docs/PROTOCOL.md §1."""
 
     n_uavs: int
+    """K, UAV base stations."""
     altitude_m: float
+    """h_fly, fixed flight altitude, m."""
     slot_s: float
+    """Slot length, s (600: 10 min)."""
     slots_per_day: int
+    """T, slots of a day; one episode is one day."""
     d_max_m: float
+    """Largest displacement per slot, m (a move is norm-clipped to it)."""
     v_max_mps: float
+    """Speed limit, m/s; also the speed of the return flight to a station."""
     carrier_hz: float
+    """f_c, carrier frequency, Hz."""
     bandwidth_hz: float
+    """B, bandwidth per UAV, Hz, split over its associated cells."""
     tx_power_w: float
+    """P_k, transmit power per UAV, W."""
     noise_psd_log10_w_per_hz: float
+    """log10 of the noise power spectral density N0 in W/Hz (-20.4: -174 dBm/Hz)."""
     r0_bps: float
+    """r0, requested rate per user, bit/s."""
     u_peak: float
+    """Fulfilment at which a cell counts as satisfied (the Jain index only)."""
     demand_intensity: float | Literal["calibrate"]
     """u; ``"calibrate"`` in settings that take it from the calibrate rule's record, which every job resolves to
     the number before it simulates (:attr:`intensity`)."""
     battery_j: float
+    """E_batt, battery capacity, J."""
     reserve_frac: float
+    """Fraction of E_batt below which a UAV returns to its nearest station."""
     recharge_slots: int
+    """Slots spent charging, then active again at the station with a full battery."""
     n_stations: int
+    """Charging stations, one at the centre of each quadrant of the area (4)."""
     reward_alpha: float
+    """alpha, energy weight in the reward (paper eq. 7)."""
     reward_beta: float
+    """beta, unserved-demand weight in the reward (paper eq. 7)."""
     obs_window: int
+    """w: the observation holds the demand maps x_{t-w..t}."""
     channel: Channel
+    """The air-to-ground channel (``scenario.channel``)."""
     rotor: Rotor
+    """The rotary-wing power model (``scenario.rotor``)."""
     init: InitConfig
+    """The initial state of every evaluated day (``scenario.init``)."""
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], *, where: str = "scenario") -> "Scenario":

@@ -27,7 +27,7 @@ import torch
 from dswm.config import stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
 from dswm.methods.collect import collect
-from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, anchor
+from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, ImaginedWorld, StepScoring, anchor
 from dswm.methods.dswm.settings import DSWMSettings, resolve
 from dswm.methods.dswm.training import save_training_figure, train
 from dswm.methods.dswm.world_model import WorldModel
@@ -145,11 +145,11 @@ class PlanningController(Controller):
         """The planner's scorer of this slot: on the world model's anchored ensemble (``model``, ``latent``) or
         on given maps (H, G) instead (``maps``)."""
         cfg = self.settings.planner
-        return ImaginationScorer(model=model, latent=latent, fleet=fleet, x_now=demand[-1].reshape(-1),
-                                 geom=self.geom, scenario=self.scenario, params=self.params, cells=self.cells,
-                                 gamma=cfg.gamma, rho=cfg.rho, lambda_u=cfg.lambda_u,
-                                 continuation=cfg.continuation, compile=cfg.compile, demand_override=maps,
-                                 imagine_scale=cfg.imagine_scale)
+        world = ImaginedWorld(cells=self.cells, geom=self.geom, scenario=self.scenario, params=self.params)
+        scoring = StepScoring(rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
+                              scale=cfg.imagine_scale)
+        return ImaginationScorer(model=model, latent=latent, fleet=fleet, x_now=demand[-1].reshape(-1), world=world,
+                                 scoring=scoring, gamma=cfg.gamma, compile=cfg.compile, demand_override=maps)
 
 
 class PersistenceController(PlanningController):

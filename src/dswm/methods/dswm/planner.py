@@ -165,11 +165,38 @@ def anchor(x_now: torch.Tensor, members: torch.Tensor, rho: float) -> tuple[torc
     return x_hat, spread / x_hat.sum(-1).clamp_min(1e-8)
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ImaginedWorld:
+    """The place every imagined step plays in: fixed over a day (one grid, one scenario)."""
+
+    cells: torch.Tensor
+    """(G, 2) cell centres in metres."""
+    geom: Geometry
+    """The grid's geometry (bounds, charging stations) the fleet kinematics use."""
+    scenario: Scenario
+    """The fleet's scenario (UAV count, speeds, batteries)."""
+    params: ServiceParams
+    """The service physics' parameters."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class StepScoring:
+    """How an imagined step turns its demand into the planner's reward (config.yaml ``dswm.planner``)."""
+
+    rho: float
+    """Anchor mixing coefficient (eq. 18)."""
+    lambda_u: float
+    """Uncertainty penalty weight (0: the served ratio alone)."""
+    continuation: str
+    """"hold" or "lloyd": how imagined steps after the first act (see ``ImaginationScorer``)."""
+    scale: float = 1.0
+    """s of the do(s) probe, the factor of the imagined demand (the anchored map, or the given map); the
+    uncertainty u, relative to the scored demand, does not change with it."""
+
+
 def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torch.Tensor,
                   x_prev: torch.Tensor | None, assoc: torch.Tensor | None, *, x_now: torch.Tensor,
-                  x_true: torch.Tensor | None, cells: torch.Tensor, geom: Geometry, scenario: Scenario,
-                  params: ServiceParams, rho: float, lambda_u: float, continuation: str, first: bool,
-                  scale: float = 1.0):
+                  x_true: torch.Tensor | None, world: ImaginedWorld, scoring: StepScoring, first: bool):
     """One imagined slot of N candidates (the body of ``ImaginationScorer``; see there).
 
     Args:
@@ -177,12 +204,14 @@ def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torc
         state: RSSM state (N, .) or None with ``x_true``; act: (N, K, 3) sampled action of this step;
         x_prev, assoc: (N, G) demand and association of the previous imagined slot (None when ``first``);
         x_now: (G,) observed map; x_true: (G,) true map of this slot, or None for the model's anchored map;
-        first: the step that executes the first action (no continuation);
-        scale: s of the do(s) probe, the factor of the imagined demand (the anchored map, or ``x_true``); the
-            uncertainty u, relative to the scored demand, does not change with it.
+        world: grid, geometry, scenario and service physics; scoring: rho, lambda_u, continuation and the
+            do(s) factor ``scale``;
+        first: the step that executes the first action (no continuation).
     Returns:
         (fleet, state, action taken (N, K, 3), demand (N, G), association (N, G), reward SR - lambda_u u (N,)).
     """
+    cells, geom, scenario, params = world.cells, world.geom, world.scenario, world.params
+    rho, lambda_u, continuation, scale = scoring.rho, scoring.lambda_u, scoring.continuation, scoring.scale
     # Continuation: later steps ride on a Lloyd step of the previous imagined slot.
     if not first and continuation == "lloyd":
         base = lloyd_step(x_prev, assoc, fleet.pos, cells, scenario.d_max_m)
@@ -220,32 +249,32 @@ class ImaginationScorer:
     step to a Lloyd step toward the centroid of each UAV's served demand, so that imagined UAVs keep
     repositioning (e.g. fly back to demand after charging) instead of freezing where the sequence left them.
     With ``compile`` each imagined step runs as code compiled by ``torch.compile``: the same functions, fused
-    into a few loops (the first call in a process compiles, seconds). ``imagine_scale`` (s of the do(s) probe)
-    multiplies every imagined demand map before it is scored.
+    into a few loops (the first call in a process compiles, seconds). ``scoring.scale`` (s of the do(s) probe,
+    ``planner.imagine_scale``) multiplies every imagined demand map before it is scored.
     """
 
     def __init__(self, *, model, latent: LatentState | None, fleet: FleetState, x_now: torch.Tensor,
-                 geom: Geometry, scenario: Scenario, params: ServiceParams, cells: torch.Tensor, gamma: float,
-                 rho: float, lambda_u: float, continuation: str, compile: bool,
-                 demand_override: torch.Tensor | None = None, imagine_scale: float = 1.0):
+                 world: ImaginedWorld, scoring: StepScoring, gamma: float, compile: bool,
+                 demand_override: torch.Tensor | None = None):
         """Args:
             model: a ``WorldModel`` (may be None only with ``demand_override``).
             latent: posterior state at t, fields (1, .); fleet: FleetState at t with fields (K, ...).
-            x_now: (G,) observed map x_t; cells: (G, 2); continuation: "hold" or "lloyd";
+            x_now: (G,) observed map x_t; world: grid cells (G, 2), geometry, scenario and service physics;
+            scoring: rho, lambda_u, continuation ("hold" or "lloyd") and ``scale``, the factor s > 0 of the
+                imagined demand (``planner.imagine_scale``; 1: as imagined); gamma: planner discount;
             demand_override: (H, G) true maps x_{t+1..t+H} (then no anchoring and no uncertainty);
-            compile: run the imagined steps compiled (``planner.compile``);
-            imagine_scale: factor s > 0 of the imagined demand (``planner.imagine_scale``; 1: as imagined).
+            compile: run the imagined steps compiled (``planner.compile``).
         """
         if model is None and demand_override is None:
             raise ValueError("ImaginationScorer: a world model is needed unless demand_override is given")
-        if continuation not in CONTINUATIONS:
-            raise ValueError(f"ImaginationScorer: continuation must be one of {CONTINUATIONS}, found {continuation!r}")
+        if scoring.continuation not in CONTINUATIONS:
+            raise ValueError(f"ImaginationScorer: continuation must be one of {CONTINUATIONS}, "
+                             f"found {scoring.continuation!r}")
+        if not scoring.scale > 0:
+            raise ValueError(f"ImaginationScorer: imagine_scale must be a positive number, found {scoring.scale!r}")
         self.model, self.latent, self.fleet, self.x_now = model, latent, fleet, x_now
-        self.geom, self.scenario, self.params, self.cells = geom, scenario, params, cells
-        self.gamma, self.rho, self.lambda_u, self.override = gamma, rho, lambda_u, demand_override
-        if not imagine_scale > 0:
-            raise ValueError(f"ImaginationScorer: imagine_scale must be a positive number, found {imagine_scale!r}")
-        self.continuation, self.imagine_scale = continuation, float(imagine_scale)
+        self.world, self.gamma, self.override = world, gamma, demand_override
+        self.scoring = dataclasses.replace(scoring, scale=float(scoring.scale))
         self.step = _compiled_step() if compile else imagined_step
         self.last_actions: torch.Tensor | None = None
 
@@ -261,9 +290,8 @@ class ImaginationScorer:
         for tau in range(horizon):
             fleet, state, act, x_prev, assoc, reward = self.step(
                 self.model, fleet, state, actions[:, tau], x_prev, assoc, x_now=self.x_now,
-                x_true=None if self.override is None else self.override[tau], cells=self.cells, geom=self.geom,
-                scenario=self.scenario, params=self.params, rho=self.rho, lambda_u=self.lambda_u,
-                continuation=self.continuation, first=tau == 0, scale=self.imagine_scale)
+                x_true=None if self.override is None else self.override[tau], world=self.world,
+                scoring=self.scoring, first=tau == 0)
             taken.append(act)
             score += self.gamma ** (tau + 1) * reward
         self.last_actions = torch.stack(taken, 1)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dswm.methods.dswm.planner import imagined_step
+from dswm.methods.dswm.planner import ImaginedWorld, StepScoring, imagined_step
 from dswm.methods.dswm.rssm import LatentState, map_state, stack_states
 from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.physics import ServiceParams
@@ -106,10 +106,13 @@ def imagined_rewards(model, posts: LatentState, play, *, grid, scenario, rho: fl
     act = torch.as_tensor(play.actions, dtype=torch.float32, device=device).clamp(-1.0, 1.0)    # (T-1, K, 3)
     # x_now of each row: the observed map of its slot (the scorer's (G,) broadcast over the N = T-1 rows).
     x_now = torch.as_tensor(play.demand[: len(play.actions)], device=device).flatten(1)       # (T-1, G)
-    kw = dict(x_now=x_now, x_true=None, cells=grid.cells(device=device), geom=grid.geometry(), scenario=scenario,
-              params=ServiceParams.from_scenario(scenario), rho=rho, continuation="hold", first=True)
-    sr_hat = imagined_step(model, fleet, posts, act, None, None, lambda_u=0.0, **kw)[-1]
-    reward = imagined_step(model, fleet, posts, act, None, None, lambda_u=lambda_u, **kw)[-1]
+    world = ImaginedWorld(cells=grid.cells(device=device), geom=grid.geometry(), scenario=scenario,
+                          params=ServiceParams.from_scenario(scenario))
+    kw = dict(x_now=x_now, x_true=None, world=world, first=True)
+    sr_hat = imagined_step(model, fleet, posts, act, None, None, **kw,
+                           scoring=StepScoring(rho=rho, lambda_u=0.0, continuation="hold"))[-1]
+    reward = imagined_step(model, fleet, posts, act, None, None, **kw,
+                           scoring=StepScoring(rho=rho, lambda_u=lambda_u, continuation="hold"))[-1]
     return sr_hat.cpu().numpy().astype(np.float64), reward.cpu().numpy().astype(np.float64)
 
 
