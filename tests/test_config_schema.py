@@ -13,7 +13,7 @@ from dswm.config import ConfigError, load_yaml
 
 from conftest import ROOT
 
-SCHEMA = runconfig.load_schema(ROOT / "workflow" / "schemas" / "config.schema.yaml")
+SCHEMA = runconfig.load_schema(runconfig.SCHEMA)
 
 
 @pytest.fixture
