@@ -20,6 +20,7 @@ class MethodSettings:
     """One method of ``methods.run``: its registration and its typed settings."""
 
     name: str
+    """The method's name in ``methods.run`` (a registered or user method)."""
     target: str
     """The controller class, "package.module:ClassName"."""
     label: str
@@ -59,22 +60,29 @@ class Settings:
     """Every setting of a run under its selected profile, typed; built once by :func:`resolve`."""
 
     profile: str
+    """The selected profile (config.yaml ``profile``: demo, smoke or paper)."""
     run: RunSettings
+    """The selected ``profiles.<profile>`` entry: datasets, seeds and day limits."""
     scenario: Scenario
+    """config.yaml ``scenario``: the environment every job simulates (u maybe ``calibrate``)."""
     evaluation: EvaluationSettings
+    """config.yaml ``evaluation`` less its display setting."""
     methods: dict[str, MethodSettings]
     """The methods of ``methods.run``, in that order (table order within a table class)."""
     calibration: CalibrationSettings
+    """config.yaml ``calibration``: how the ``calibrate`` rule finds u."""
     selection: SelectionSettings | None
     """None in the audit's slice (the audit reads no selection)."""
     mlflow: MlflowSettings | None
     """None in the audit's slice (where a run is logged changes no result the audit checks)."""
     tables: TablesSettings
+    """config.yaml ``tables``: how the tables are laid out."""
     figures: FiguresSettings | None = None
     """None in a job's slice that reads no figure setting (the audit's)."""
     resources: ResourceSettings | None = None
     """What each rule's jobs ask a cluster for; None in the audit's slice (where a job runs changes no result)."""
     datasets: DatasetsConfig
+    """config.yaml ``datasets``: each dataset's preparation and the common settings."""
     display: Display | None
     """None in a job's slice: display settings travel beside it."""
 

@@ -19,7 +19,9 @@ class EvalDayLimits:
     """At most this many of each split's evaluation days (None: every configured day)."""
 
     id: int | None
+    """In-distribution (weekday) test days at most; None: every configured one."""
     ood: int | None
+    """Out-of-distribution (holiday) test days at most; None: every configured one."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -27,8 +29,11 @@ class RunSettings:
     """The selected profile (``profiles.<profile>``)."""
 
     datasets: tuple[str, ...]
+    """The datasets the profile runs, in table order."""
     seeds: dict[str, tuple[int, ...]]
+    """{dataset: its seeds}: one training and one evaluation job per seed."""
     eval_days: EvalDayLimits
+    """How many of each split's test days are evaluated."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -36,8 +41,11 @@ class EvaluationSettings:
     """config.yaml ``evaluation`` less the display setting (:class:`Display`)."""
 
     device: str
+    """Torch device of the environment and the planners (``cpu``, ``cuda``)."""
     torch_threads: int
+    """Torch threads per job (Snakemake runs one job per core)."""
     batch_days: bool
+    """Step all evaluated days of a job as one batch where the controller allows it."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -46,7 +54,9 @@ class Runtime:
     read (``batch_days`` concerns evaluation only)."""
 
     device: str
+    """Torch device (``evaluation.device``)."""
     torch_threads: int
+    """Torch threads per job (``evaluation.torch_threads``)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -61,10 +71,15 @@ class Display:
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class CalibrationSettings:
     dataset: str
+    """The dataset on whose training days Static is run (PROTOCOL §2)."""
     target_served_ratio: float
+    """The served ratio of Static that the calibrated u gives."""
     bracket: tuple[float, float]
+    """The bisection interval (low, high) of u."""
     tolerance: float
+    """Stop once the served ratio is this close to the target."""
     max_iter: int
+    """Bisection steps at most (more is an error)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -92,8 +107,11 @@ class MlflowHttp:
     """config.yaml ``mlflow.http``: how a tracking server's transient HTTP errors are retried (bounded)."""
 
     max_retries: int
+    """Retries of a refused connection or a 408/429/5xx answer (MLflow allows at most 10)."""
     backoff_factor: int
+    """Seconds of the first wait between tries, doubled at each further try."""
     timeout_s: int
+    """Seconds each request waits for an answer."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -101,10 +119,15 @@ class MlflowSettings:
     tracking_uri: str | None
     """A tracking server's URL (``http://host:port``), or None for the SQLite ``store`` (one machine)."""
     store: str
+    """The SQLite tracking store used when ``tracking_uri`` is None."""
     artifacts: str
+    """The experiment's artifact location (every run's result files)."""
     experiment: str
+    """The one experiment every job logs its run to."""
     batch_size: int
+    """Metrics per ``log_batch`` request (MLflow's limit)."""
     http: MlflowHttp
+    """How a tracking server's transient HTTP errors are retried."""
     unlogged: str
     """Where a job whose tracking failed keeps its result files (``<unlogged>/<job key>/``)."""
 
@@ -112,7 +135,9 @@ class MlflowSettings:
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SplitLabels:
     id: str
+    """Column name of the in-distribution split (the paper's ``Weekday``)."""
     ood: str
+    """Column name of the out-of-distribution split (the paper's ``Holiday``)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -132,10 +157,15 @@ class RoomSettings:
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class TablesSettings:
     main_dataset: str
+    """The dataset of Table III (one the profile runs)."""
     decimals: int
+    """Decimals of the printed served ratios."""
     split_labels: SplitLabels
+    """Column names of the two evaluation splits."""
     class_order: tuple[str, ...]
+    """The row groups (table classes) of Table III, top to bottom."""
     room: RoomSettings
+    """The footnote on the room a forecast could fill."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -153,6 +183,7 @@ class ScalingSettings:
     """config.yaml ``figures.scaling``: the two one-dimensional sweeps of paper Fig. scaling."""
 
     methods: tuple[str, ...]
+    """Methods run in both sweeps (those of ``methods.run``)."""
     fleet_sizes: tuple[int, ...]
     """K of each run of the fleet sweep (the scenario's own K is the reference point)."""
     intensity_scales: tuple[float, ...]
@@ -164,6 +195,7 @@ class SampleEfficiencySettings:
     """config.yaml ``figures.sample_efficiency``: the test-day probe at fixed training checkpoints."""
 
     methods: tuple[str, ...]
+    """Methods probed (those of ``methods.run`` that the ``train`` rule fits)."""
     fractions: tuple[float, ...]
     """Checkpoints as fractions of each method's training budget."""
 
@@ -182,12 +214,19 @@ class FiguresSettings:
     extra runs behind them (none of which enters a table)."""
 
     dataset: str
+    """The dataset of the extra runs and of the per-dataset figures (one the profile runs)."""
     seeds: tuple[int, ...]
+    """Seeds of the extra runs."""
     eval_days: EvalDayLimits
+    """How many of each split's test days the extra runs evaluate."""
     do_probe: DoProbeSettings
+    """The counterfactual probe of paper Fig. ablation (b)."""
     scaling: ScalingSettings
+    """The fleet-size and intensity sweeps of paper Fig. scaling."""
     sample_efficiency: SampleEfficiencySettings
+    """The test-day probe at fixed training checkpoints."""
     wm_quality: WmQualitySettings
+    """The world model's imagination-quality curve."""
 
     def present(self, names, settings: "Settings") -> list[str]:
         """The methods of ``names`` that ``methods.run`` evaluates on :attr:`dataset`, in the order given."""
@@ -223,6 +262,7 @@ class ResourceSettings:
     default: JobResources
     """Every rule that ``rules`` does not list."""
     rules: dict[str, JobResources]
+    """{rule: its jobs' resources} for the rules that differ from ``default``."""
     gpu_slurm_extra: str
     """sbatch options a training job on a GPU adds (a constraint, a QoS); its GPU itself is the ``gpu`` resource."""
 

@@ -20,6 +20,7 @@ class Untracked:
     params): how a job reports or tags its run, never what it computes."""
 
     value: Any
+    """The value the job receives (``params.<name>.value``)."""
 
 
 def param(obj: Any) -> str:
