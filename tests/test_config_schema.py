@@ -303,8 +303,9 @@ def test_one_budget_merge_sets_a_nested_key_alone_and_names_the_entry():
     assert with_budget(section, "smoke", "figures") == ({"a": 1, "nested": {"x": 1, "y": 2}}, "figures")
     assert with_budget({"a": 1, "budgets": None}, "demo", "resources") == ({"a": 1}, "resources")
     assert section["budgets"]["demo"] == {"nested": {"y": 5}} and section["nested"]["y"] == 2  # nothing changed
-    with pytest.raises(ConfigError, match=r"^config.yaml: key 'dswm.budgets' has no entry 'demo' \(found \['paper'\]\)$"):
+    with pytest.raises(ConfigError) as err:
         with_budget({"a": 1, "budgets": {"paper": {}}}, "demo", "dswm", required=True)
+    assert str(err.value) == "config.yaml: key 'dswm.budgets' has no entry 'demo' (found ['paper'])"
 
 
 def test_every_section_with_budgets_is_merged_the_same_way(config):
@@ -326,8 +327,8 @@ def test_every_section_with_budgets_is_merged_the_same_way(config):
     bad["figures"]["budgets"]["demo"]["seeds"] = "x"
     with pytest.raises(ConfigError) as err:
         tdmpc_settings.resolve(bad, profile="demo")
-    assert str(err.value) == ("config key methods.tdmpc (with methods.tdmpc.budgets.demo).steps: expected an integer, "
-                              "found 'many'")
+    assert str(err.value) == ("config key methods.tdmpc (with methods.tdmpc.budgets.demo).steps: expected an "
+                              "integer, found 'many'")
     with pytest.raises(ConfigError) as err:
         registry.lookup("sac", bad["methods"])[1].options_from_config(name="sac", config=bad, profile="demo")
     assert str(err.value) == ("config key methods.sac (with methods.sac.budgets.demo).batch_size: expected an "
