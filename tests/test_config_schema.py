@@ -1,9 +1,11 @@
 """Config validation and profile resolution: the repository's config passes; each bad input stops up front."""
+import ast
 import copy
 import dataclasses
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
@@ -336,3 +338,24 @@ def test_every_section_with_budgets_is_merged_the_same_way(config):
     with pytest.raises(ConfigError) as err:
         runconfig.figures_settings(bad, "demo")
     assert str(err.value) == "config key figures (with figures.budgets.demo).seeds: expected a list, found 'x'"
+
+
+def undocumented_fields(package: Path) -> list[str]:
+    """``file:line Class.field`` of every annotated class field in ``package`` without an attribute docstring."""
+    bad = []
+    for path in sorted(package.glob("*.py")):
+        for cls in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(cls, ast.ClassDef):
+                continue
+            for field, after in zip(cls.body, [*cls.body[1:], None]):
+                documented = (isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                              and isinstance(after.value.value, str))
+                if isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name) and not documented:
+                    bad.append(f"{path.name}:{field.lineno} {cls.name}.{field.target.id}")
+    return bad
+
+
+def test_every_field_of_the_settings_package_has_a_docstring(tmp_path):
+    assert undocumented_fields(ROOT / "src" / "dswm" / "settings") == []
+    (tmp_path / "s.py").write_text('class A:\n    x: int\n    """Documented."""\n    y: int\n    z: int = 0\n')
+    assert undocumented_fields(tmp_path) == ["s.py:4 A.y", "s.py:5 A.z"]
