@@ -1,19 +1,23 @@
 """Config validation and profile resolution: the repository's config passes; each bad input stops up front."""
+import ast
 import copy
 import dataclasses
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
 
 from dswm import settings as runconfig
-from dswm.config import ConfigError, load_yaml
+from dswm.config import ConfigError, load_yaml, with_budget
+from dswm.methods import registry
+from dswm.methods.tdmpc import settings as tdmpc_settings
 
 from conftest import ROOT
 
-SCHEMA = runconfig.load_schema(ROOT / "workflow" / "schemas" / "config.schema.yaml")
+SCHEMA = runconfig.load_schema(runconfig.SCHEMA)
 
 
 @pytest.fixture
@@ -292,3 +296,66 @@ def test_snakemake_names_the_source_and_reads_nested_config_values(tmp_path):
     assert rc != 0
     assert "--config: key 'methods.run' must be a non-empty list of registered method names" in out
     assert f"{tmp_path / 'user.yaml'}: key 'scenario.n_uavs' must be an integer >= 1; found 0" in out
+
+
+def test_one_budget_merge_sets_a_nested_key_alone_and_names_the_entry():
+    section = {"a": 1, "nested": {"x": 1, "y": 2}, "budgets": {"demo": {"nested": {"y": 5}}, "paper": None}}
+    assert with_budget(section, "demo", "figures") == ({"a": 1, "nested": {"x": 1, "y": 5}},
+                                                       "figures (with figures.budgets.demo)")
+    assert with_budget(section, "smoke", "figures") == ({"a": 1, "nested": {"x": 1, "y": 2}}, "figures")
+    assert with_budget({"a": 1, "budgets": None}, "demo", "resources") == ({"a": 1}, "resources")
+    assert section["budgets"]["demo"] == {"nested": {"y": 5}} and section["nested"]["y"] == 2  # nothing changed
+    with pytest.raises(ConfigError) as err:
+        with_budget({"a": 1, "budgets": {"paper": {}}}, "demo", "dswm", required=True)
+    assert str(err.value) == "config.yaml: key 'dswm.budgets' has no entry 'demo' (found ['paper'])"
+
+
+def test_every_section_with_budgets_is_merged_the_same_way(config):
+    """figures, resources, a method's section, TD-MPC's and DSWM's: the profile's entry over the section, one nested
+    key alone, and a mistake inside a budget named with the entry it came from."""
+    demo = runconfig.resolve(config)
+    assert demo.figures.seeds == (0,) and demo.figures.do_probe.scales == (0.5, 2.0)  # the rest from `figures`
+    smoke = runconfig.resolve({**config, "profile": "smoke"})
+    assert (smoke.resources.of("train").runtime, smoke.resources.of("train").mem_mb) == (15, 4000)
+    tdmpc = demo.methods["tdmpc"].options
+    assert (tdmpc.steps, tdmpc.precollect.transitions, tdmpc.precollect.collect_parallel) == (800, 2860, 10)
+    assert (tdmpc.gamma, smoke.methods["tdmpc"].options.steps) == (0.95, 40)
+    dswm = demo.methods["dswm"].options
+    assert (dswm.transitions, dswm.steps, dswm.planner.n_samples, dswm.planner.n_elites) == (2860, 400, 48, 6)
+    # past the schema (a job's own builder): the key names the budget entry the value came from
+    bad = copy.deepcopy(config)
+    bad["methods"]["tdmpc"]["budgets"]["demo"]["steps"] = "many"
+    bad["methods"]["sac"]["budgets"]["demo"]["batch_size"] = "x"
+    bad["figures"]["budgets"]["demo"]["seeds"] = "x"
+    with pytest.raises(ConfigError) as err:
+        tdmpc_settings.resolve(bad, profile="demo")
+    assert str(err.value) == ("config key methods.tdmpc (with methods.tdmpc.budgets.demo).steps: expected an "
+                              "integer, found 'many'")
+    with pytest.raises(ConfigError) as err:
+        registry.lookup("sac", bad["methods"])[1].options_from_config(name="sac", config=bad, profile="demo")
+    assert str(err.value) == ("config key methods.sac (with methods.sac.budgets.demo).batch_size: expected an "
+                              "integer, found 'x'")
+    with pytest.raises(ConfigError) as err:
+        runconfig.figures_settings(bad, "demo")
+    assert str(err.value) == "config key figures (with figures.budgets.demo).seeds: expected a list, found 'x'"
+
+
+def undocumented_fields(package: Path) -> list[str]:
+    """``file:line Class.field`` of every annotated class field in ``package`` without an attribute docstring."""
+    bad = []
+    for path in sorted(package.glob("*.py")):
+        for cls in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(cls, ast.ClassDef):
+                continue
+            for field, after in zip(cls.body, [*cls.body[1:], None]):
+                documented = (isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                              and isinstance(after.value.value, str))
+                if isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name) and not documented:
+                    bad.append(f"{path.name}:{field.lineno} {cls.name}.{field.target.id}")
+    return bad
+
+
+def test_every_field_of_the_settings_package_has_a_docstring(tmp_path):
+    assert undocumented_fields(ROOT / "src" / "dswm" / "settings") == []
+    (tmp_path / "s.py").write_text('class A:\n    x: int\n    """Documented."""\n    y: int\n    z: int = 0\n')
+    assert undocumented_fields(tmp_path) == ["s.py:4 A.y", "s.py:5 A.z"]

@@ -12,6 +12,7 @@ FORBIDDEN = {
     "sim": ("dswm.methods", "dswm.protocol", "dswm.pipeline", "dswm.settings", "dswm.figures"),
     "methods": ("dswm.protocol", "dswm.pipeline", "dswm.settings", "dswm.figures"),
     "protocol": ("dswm.pipeline", "dswm.settings", "dswm.figures"),
+    "settings": ("dswm.protocol", "dswm.pipeline", "dswm.figures"),
     "pipeline": ("dswm.figures",),
     # the figures draw from result files only: no simulator, no method
     "figures": ("dswm.sim", "dswm.methods"),
@@ -132,7 +133,7 @@ def test_a_handful_of_modules_sit_directly_in_the_package():
     top = sorted(p.name for p in SRC.glob("*.py") if p.name != "__init__.py")
     assert len(top) <= 4, top
     assert {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()} == \
-        {"sim", "methods", "protocol", "pipeline", "figures"}
+        {"sim", "methods", "protocol", "pipeline", "settings", "figures"}
 
 
 def test_each_name_of_the_simulator_has_one_import_path():

@@ -23,7 +23,7 @@ import yaml
 
 from prep.typed import ConfigError, build
 
-__all__ = ["ConfigError", "build", "canonical_json", "load_yaml", "merge", "stable_hash", "to_plain"]
+__all__ = ["ConfigError", "build", "canonical_json", "load_yaml", "merge", "stable_hash", "to_plain", "with_budget"]
 
 
 def stable_hash(obj: Any, *, length: int = 16) -> str:
@@ -65,6 +65,31 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any] | None) -> dict:
     for k, v in (over or {}).items():
         out[k] = merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else copy.deepcopy(v)
     return out
+
+
+def with_budget(section: Mapping[str, Any], profile: str, key: str, *, required: bool = False) -> tuple[dict, str]:
+    """A section with per-profile budgets, under ``profile``: the section less its ``budgets`` with the
+    ``budgets.<profile>`` entry merged over it (:func:`merge`, mappings key by key, so a budget may set one nested
+    key alone), and the key that names it in messages, ``<key> (with <key>.budgets.<profile>)`` when that entry
+    exists. The one merge of every section that has budgets (``figures``, ``resources``, ``dswm``, the methods').
+
+    Args:
+        section: the section as config.yaml holds it (``budgets``: {profile: {key: value}}, may be absent or null).
+        profile: the selected profile.
+        key: the section's dotted key (``figures``, ``methods.tdmpc``).
+        required: the section must have an entry for ``profile`` (DSWM's, whose budget holds keys the section
+            does not).
+
+    Raises:
+        ConfigError: ``required`` and ``budgets`` has no entry ``profile``.
+    """
+    section = dict(section)
+    budgets = section.pop("budgets", None) or {}
+    if profile not in budgets:
+        if required:
+            raise ConfigError(f"config.yaml: key '{key}.budgets' has no entry {profile!r} (found {sorted(budgets)})")
+        return merge(section, None), key
+    return merge(section, budgets[profile]), f"{key} (with {key}.budgets.{profile})"
 
 
 def load_yaml(path: str | Path) -> dict:

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
-from dswm.config import ConfigError, build, merge, stable_hash
+from dswm.config import ConfigError, build, stable_hash, with_budget
 
 
 def training_inputs_hash(core, day_ids=None) -> str:
@@ -102,10 +102,7 @@ class Controller:
         key = f"methods.user.{name}.options" if user is not None else f"methods.{name}"
         section = dict(user.get("options", {})) if user is not None else config["methods"].get(name)
         if user is None and isinstance(section, Mapping) and "budgets" in section:
-            section = dict(section)
-            budgets = section.pop("budgets") or {}
-            section = merge(section, budgets.get(profile))
-            key = f"methods.{name} (with methods.{name}.budgets.{profile})" if profile in budgets else key
+            section, key = with_budget(section, profile, key)
         return cls.options_from_plain(name=name, data=section, where=key)
 
     @classmethod

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping
 
-from dswm.config import ConfigError, build, merge
+from dswm.config import ConfigError, build, merge, with_budget
 from dswm.methods.dswm.planner import PlannerConfig
 from dswm.methods.search import SearchSettings
 from dswm.methods.dswm.training import TrainConfig
@@ -48,12 +48,9 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
     """
     if method not in dswm["methods"]:
         raise ConfigError(f"config.yaml: key 'dswm.methods' has no entry {method!r} (found {sorted(dswm['methods'])})")
-    budgets = dswm["budgets"]
-    if profile not in budgets:
-        raise ConfigError(f"config.yaml: key 'dswm.budgets' has no entry {profile!r} (found {sorted(budgets)})")
+    budgeted, _ = with_budget(dswm, profile, "dswm", required=True)  # transitions, steps and planner reductions
     over = dswm["methods"].get(method) or {}
-    budget = budgets[profile]
-    planner = build(PlannerConfig, merge(merge(dswm["planner"], budget.get("planner")), over.get("planner")),
+    planner = build(PlannerConfig, merge(budgeted["planner"], over.get("planner")),
                     "dswm.planner", search=build(SearchSettings, search, "search"))
     if not 1 <= planner.n_elites <= planner.n_samples:
         raise ConfigError(f"config.yaml: method {method!r}: key 'dswm.planner.n_elites' must lie in [1, n_samples] "
@@ -64,4 +61,4 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
         world_model=WorldModelConfig.from_flat(merge(dswm["world_model"], over.get("world_model")),
                                                "dswm.world_model"),
         training=build(TrainConfig, merge(dswm["training"], over.get("training")), "dswm.training"),
-        transitions=int(budget["transitions"]), steps=int(budget["steps"]), planner=planner)
+        transitions=int(budgeted["transitions"]), steps=int(budgeted["steps"]), planner=planner)

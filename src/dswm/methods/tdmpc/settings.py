@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal, Mapping
 
-from dswm.config import ConfigError, build, merge
+from dswm.config import ConfigError, build, with_budget
 from dswm.methods.collect import CollectSettings
 from dswm.methods.tdmpc.planner import MPPIConfig
 
@@ -144,9 +144,4 @@ def resolve(config: Mapping[str, Any], *, name: str = "tdmpc", profile: str) -> 
     section = config["methods"].get(name)
     if not isinstance(section, Mapping):
         raise ConfigError(f"config.yaml: key '{where}' must be a mapping of TD-MPC's settings; found {section!r}")
-    section = dict(section)
-    budgets = section.pop("budgets", None) or {}
-    if profile in budgets:
-        section = merge(section, budgets[profile])
-        where = f"{where} (with {where}.budgets.{profile})"
-    return build(TDMPCSettings, section, where)
+    return build(TDMPCSettings, *with_budget(section, profile, where))

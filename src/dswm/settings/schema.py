@@ -1,0 +1,139 @@
+"""Schema validation of config.yaml: every violation as one line that names the key, what was expected and what was
+found; the strings ``--config`` passed read as numbers where the schema expects one.
+
+The schema belongs to the workflow (``workflow/schemas/config.schema.yaml``, where Snakemake keeps it). :data:`SCHEMA`
+is the one place in ``src/`` that names that path: the default of :func:`dswm.settings.resolve` for a caller that
+passes none (the workflow passes its own).
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import jsonschema
+import yaml
+
+from dswm.config import ConfigError, ConfigSources, lookup
+
+SCHEMA = Path(__file__).resolve().parents[3] / "workflow" / "schemas" / "config.schema.yaml"
+"""The JSON schema of config.yaml, in the workflow beside ``src/``."""
+
+
+def load_schema(path: str | Path) -> dict:
+    """Read the YAML JSON-schema of config.yaml."""
+    with Path(path).open() as fh:
+        return yaml.safe_load(fh)
+
+
+def _key(path: Iterable[Any]) -> str:
+    """Dotted key of a path into the config, e.g. ``profiles.demo.seeds.milan[0]``."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "(top level)"
+
+
+def _describe(schema: Mapping[str, Any]) -> str:
+    """The expected form of a value, from the schema's description or its type keywords."""
+    if "description" in schema:
+        return str(schema["description"])
+    if "enum" in schema:
+        return "one of " + ", ".join(repr(v) for v in schema["enum"])
+    kind = schema.get("type", "a value")
+    kind = " or ".join(kind) if isinstance(kind, list) else kind
+    bounds = [f"{word} {schema[k]}" for k, word in (("minimum", ">="), ("maximum", "<="),
+                                                   ("exclusiveMinimum", ">"), ("minItems", "with at least"))
+              if k in schema]
+    return f"{kind}" + (f" ({', '.join(bounds)})" if bounds else "")
+
+
+def _message(err: jsonschema.ValidationError, source: str) -> str:
+    """One readable line for a schema violation: the key, what was expected, what was found."""
+    where = _key(err.absolute_path)
+    if err.validator == "additionalProperties":
+        allowed = sorted(err.schema.get("properties", {}))
+        unknown = sorted(set(err.instance) - set(allowed))
+        lines = []
+        for name in unknown:
+            if err.schema.get("patternProperties"):
+                pattern = ", ".join(err.schema["patternProperties"])
+                lines.append(f"{source}: key '{_key([*err.absolute_path, name])}' is not a valid name "
+                             f"(expected a name matching {pattern})")
+                continue
+            near = difflib.get_close_matches(name, allowed, n=1)
+            hint = (f"; did you mean '{near[0]}'?" if near else
+                    "; a new setting is declared in workflow/schemas/config.schema.yaml")
+            lines.append(f"{source}: unknown key '{_key([*err.absolute_path, name])}' (expected one of "
+                         f"{', '.join(allowed)}){hint}")
+        return "\n".join(lines)
+    if err.validator == "required":
+        missing = err.message.split("'")[1]
+        sub = err.schema.get("properties", {}).get(missing, {})
+        return f"{source}: missing key '{_key([*err.absolute_path, missing])}' (expected {_describe(sub)})"
+    return f"{source}: key '{where}' must be {_describe(err.schema)}; found {err.instance!r}"
+
+
+def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml",
+                    sources: ConfigSources | None = None) -> None:
+    """Check ``config`` against the schema; raise ConfigError listing every violation, one per line.
+
+    Args:
+        config: the parsed config.yaml (with any ``--configfile`` and ``--config`` overrides applied).
+        schema: the parsed workflow/schemas/config.schema.yaml.
+        source: file name used in messages.
+        sources: where each value came from (:class:`dswm.config.ConfigSources`); each line then names the layer
+            of its key instead of ``source``, and a string that ``--config`` passed says so.
+    """
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    if not errors:
+        return
+    lines = []
+    for err in errors:
+        line = _message(err, source)
+        if sources is not None:
+            line = sources.relabel(line)
+            if isinstance(err.instance, str) and sources.of(list(err.absolute_path)) == ConfigSources.CLI:
+                line += (f" (--config passed it as the string {err.instance!r}: Snakemake reads a value nested in "
+                         f"--config as a string, taken here as a number, boolean or null only where the schema "
+                         f"expects one)")
+        lines.append(line)
+    raise ConfigError("invalid configuration:\n" + "\n".join(lines))
+
+
+def coerce_cli_strings(config: Mapping[str, Any], schema: Mapping[str, Any], cli: Mapping[str, Any]) -> dict:
+    """``config`` with each string that ``--config`` passed inside a mapping (Snakemake reads nested values as
+    strings: ``scenario={"n_uavs": 3}`` arrives as ``{"n_uavs": "3"}``) read as YAML where the schema refuses the
+    string and YAML reads it as a number, a boolean or null; every other value as it is.
+
+    Args:
+        config: the merged config.
+        schema: the JSON schema.
+        cli: the ``--config`` overrides (``workflow.config_settings.config``).
+    """
+    out = copy.deepcopy(dict(config))
+    validator = jsonschema.Draft202012Validator(schema)
+    while True:
+        changed = False
+        for err in validator.iter_errors(out):
+            path = list(err.absolute_path)
+            given, value = lookup(cli, path)
+            if len(path) < 2 or not given or not isinstance(value, str) or err.instance != value:
+                continue
+            try:
+                read = yaml.safe_load(value)
+            except yaml.YAMLError:
+                continue
+            if read is not None and not isinstance(read, (bool, int, float)):
+                continue
+            node = out
+            for part in path[:-1]:
+                node = node[part]
+            node[path[-1]] = read
+            changed = True
+        if not changed:
+            return out
+
+
