@@ -50,7 +50,7 @@ def test_the_experiment_opens_on_the_runs_view_and_a_run_records_its_demand_tens
     (tensor / "demand.parquet").write_bytes(b"demand of milan")
     from hashlib import sha256
 
-    from dswm.pipeline.jobs import log_demand_input
+    from dswm.pipeline.setup import log_demand_input
 
     with open_job(cfg, tmp_path) as run:
         full = log_demand_input(run, tensor, "milan", "evaluation")
