@@ -147,7 +147,7 @@ def test_a_sigterm_as_the_run_is_created_ends_it_failed(store, tmp_path, monkeyp
 
     monkeypatch.setattr(MlflowClient, "create_run", create_then_term)
     before = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
-    with pytest.raises(tracking._Terminated, match="terminated by signal 15"):
+    with pytest.raises(tracking.Terminated, match="terminated by signal 15"):
         with open_job(cfg, tmp_path):
             raise AssertionError("the body must not run")
     (only,) = runs(client, info)
