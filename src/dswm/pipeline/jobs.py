@@ -8,6 +8,11 @@
                         size of both, written last).
 * :func:`calibrate_job` bisection of the demand intensity; a JSON with the value.
 * :func:`tables_job`    the two tables from the result files.
+* :func:`select_job`    the shared search's strength and the planner's open values, chosen on training days.
+
+Every job that simulates is set up by ``dswm.pipeline.setup`` (as are the extra runs, the probe and the world-model
+quality job); :func:`fit_on_training_days`, :func:`finish_training` and :func:`evaluate_controller` are the steps
+every train and evaluate job takes, the extra runs' included (``dswm.pipeline.extra``).
 
 Each job receives ``job``, the plain form of the settings slice its rule passes (``dswm.settings.*_slice``),
 and builds its typed settings from it with the project's one builder; no job reads config.yaml.
@@ -157,9 +162,9 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
-    training manifest. days.parquet records the model (:func:`model_record`) and the method's resolved settings
-    with the BCD search it runs (:func:`method_record`) in its metadata; the MLflow run is tagged ``train_source``,
-    ``model_path`` and ``model_sha256``. ``record_out`` (``evaluation.write_eval_record``: the SHA-256 and size of
+    training manifest. days.parquet records the model (``dswm.pipeline.setup.model_record``) and the method's
+    resolved settings with the BCD search it runs (``setup.method_record``) in its metadata; the MLflow run is
+    tagged ``train_source``, ``model_path`` and ``model_sha256``. ``record_out`` (``evaluation.write_eval_record``: the SHA-256 and size of
     days.parquet and trajectory.npz) is written last, once both are complete and logged; the audit
     (``protocol.result_records``) proves from it that neither changed since.
     """
