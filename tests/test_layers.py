@@ -171,7 +171,8 @@ def test_no_module_imports_another_modules_private_names(tmp_path):
     assert private_imports() == []
     (tmp_path / "dswm" / "pipeline").mkdir(parents=True)
     (tmp_path / "dswm" / "pipeline" / "probe.py").write_text(
-        "from dswm.pipeline.setup import set_up\n\n\ndef f():\n    from dswm.pipeline.jobs import DAY_METRICS, _common\n")
+        "from dswm.pipeline.setup import set_up\n\n\ndef f():\n"
+        "    from dswm.pipeline.jobs import DAY_METRICS, _common\n")
     assert private_imports(tmp_path) == ["dswm/pipeline/probe.py:5 dswm.pipeline.jobs._common"]
 
 

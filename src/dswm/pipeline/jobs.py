@@ -164,9 +164,9 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
     training manifest. days.parquet records the model (``dswm.pipeline.setup.model_record``) and the method's
     resolved settings with the BCD search it runs (``setup.method_record``) in its metadata; the MLflow run is
-    tagged ``train_source``, ``model_path`` and ``model_sha256``. ``record_out`` (``evaluation.write_eval_record``: the SHA-256 and size of
-    days.parquet and trajectory.npz) is written last, once both are complete and logged; the audit
-    (``protocol.result_records``) proves from it that neither changed since.
+    tagged ``train_source``, ``model_path`` and ``model_sha256``. ``record_out`` (``evaluation.write_eval_record``:
+    the SHA-256 and size of days.parquet and trajectory.npz) is written last, once both are complete and logged; the
+    audit (``protocol.result_records``) proves from it that neither changed since.
     """
     s = set_up(job, "evaluation", EvaluationSettings, intensity)
     limits = build(EvalDayLimits, s.job["eval_days"], "eval_days")
