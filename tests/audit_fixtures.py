@@ -179,7 +179,7 @@ def write_record(run: Path) -> None:
 
 def model_record(settings: Settings, root: Path, ds: str, method: str, seed: int) -> dict:
     """The model record a clean evaluation of `method` stores in days.parquet (as
-    `dswm.pipeline.jobs.model_record`): for a learning method, its training source's model.pt (already written)
+    `dswm.pipeline.setup.model_record`): for a learning method, its training source's model.pt (already written)
     with its SHA-256 and manifest."""
     from prep.rawio import sha256_file
 
@@ -194,9 +194,9 @@ def model_record(settings: Settings, root: Path, ds: str, method: str, seed: int
 
 def method_record(settings: Settings, method: str, seed: int = 0) -> dict:
     """The method record a clean evaluation of `method` stores in days.parquet: built by the evaluate job's own
-    `dswm.pipeline.jobs.method_record` from the method's settings and the controller they build."""
+    `dswm.pipeline.setup.method_record` from the method's settings and the controller they build."""
     from dswm.methods import registry
-    from dswm.pipeline.jobs import method_record as job_method_record
+    from dswm.pipeline.setup import method_record as job_method_record
 
     m = settings.methods[method]
     ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=settings.evaluation.device)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from dswm.methods.base import DayContext
-from dswm.pipeline.jobs import training_core
+from dswm.pipeline.setup import training_core
 from dswm.protocol.evaluation import evaluate
 from dswm.sim.core import FleetCore, Grid, initial_positions
 from dswm.sim.env import synthetic_demand

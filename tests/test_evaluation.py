@@ -135,7 +135,7 @@ def test_days_file_carries_the_record_of_the_model_it_evaluated(tmp_path, monkey
     import json
 
     from dswm.protocol.evaluation import read_model_record, write_days
-    from dswm.pipeline.jobs import model_record
+    from dswm.pipeline.setup import model_record
     from prep.rawio import sha256_file
 
     monkeypatch.chdir(tmp_path)
@@ -166,7 +166,7 @@ def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path, 
     import json
     from pathlib import Path
 
-    from dswm.pipeline.jobs import model_record
+    from dswm.pipeline.setup import model_record
 
     monkeypatch.chdir(tmp_path)  # the workflow's root: the command names the model as Snakemake does
     model = Path("results/milan/dswm/seed0/model.pt")
@@ -187,7 +187,7 @@ def test_a_model_that_is_not_the_one_its_manifest_recorded_is_refused(tmp_path, 
 def test_days_file_carries_the_resolved_settings_and_search_of_its_method(tmp_path):
     from dswm.config import to_plain
     from dswm.methods.base import Controller
-    from dswm.pipeline.jobs import method_record, model_record
+    from dswm.pipeline.setup import method_record, model_record
     from dswm.protocol.evaluation import (METHOD_RECORD_FIELDS, read_method_record, read_model_record,
                                           write_days)
     from dswm.settings import MethodSettings

@@ -15,7 +15,7 @@ import pytest
 from conftest import ROOT
 from dswm import settings as S
 from dswm.config import ConfigError, load_yaml, to_plain
-from dswm.pipeline import jobs
+from dswm.pipeline import setup
 from dswm.sim.scenario import CALIBRATE, DEMO_INTENSITY, Scenario
 
 RECORD = "results/calibration/demand_intensity.json"
@@ -177,11 +177,13 @@ def test_jobs_simulate_and_hash_the_number_of_the_record(config, tmp_path):
     assert S.calibrated_scenario(numbered, tmp_path / "absent.json") is numbered  # a number reads no record
     # the jobs' own resolution, and what their MLflow run logs and hashes
     job = S.evaluate_slice(cal, "greedy")
-    _, got, _ = jobs._common(job, "evaluation", S.EvaluationSettings, record)
-    assert got == scenario
-    assert jobs._as_used(job, got)["scenario"] == to_plain(numbered)
+    used = setup.set_up(job, "evaluation", S.EvaluationSettings, record)
+    assert used.scenario == scenario
+    assert used.job["scenario"] == to_plain(numbered)
+    scaled = setup.set_up({**job, "intensity_scale": 2.0}, "evaluation", S.EvaluationSettings, record)  # a u variant
+    assert scaled.scenario.intensity == 140.5 and scaled.job["scenario"]["demand_intensity"] == 140.5
     with pytest.raises(ConfigError, match="no calibration record was given"):
-        jobs._common(job, "evaluation", S.EvaluationSettings, None)
+        setup.set_up(job, "evaluation", S.EvaluationSettings, None)
 
 
 def test_the_standin_intensity_is_only_for_scenarios_without_a_record():

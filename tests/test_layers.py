@@ -189,3 +189,41 @@ def test_prep_has_no_import_cycle(tmp_path):
     (tmp_path / "prep" / "config.py").write_text("from prep.days import check_days\n")
     (tmp_path / "prep" / "days.py").write_text("def f():\n    from prep.config import Split\n")
     assert prep_import_cycles(tmp_path) == [["prep.config", "prep.days"]]
+
+
+def private_imports(src: Path = ROOT / "src") -> list[str]:
+    """Every import by a module of ``src`` of a private name (``_x``) of a project module (dswm, prep)."""
+    bad = []
+    for path in sorted(src.rglob("*.py")):
+        for line, module, names in imports_of(path):
+            if module.split(".")[0] in ("dswm", "prep"):
+                bad += [f"{path.relative_to(src).as_posix()}:{line} {module}.{n}" for n in names if n.startswith("_")]
+    return bad
+
+
+def test_no_module_imports_another_modules_private_names(tmp_path):
+    assert private_imports() == []
+    (tmp_path / "dswm" / "pipeline").mkdir(parents=True)
+    (tmp_path / "dswm" / "pipeline" / "probe.py").write_text(
+        "from dswm.pipeline.setup import set_up\n\n\ndef f():\n"
+        "    from dswm.pipeline.jobs import DAY_METRICS, _common\n")
+    assert private_imports(tmp_path) == ["dswm/pipeline/probe.py:5 dswm.pipeline.jobs._common"]
+
+
+MAX_MODULE_LINES = 400
+"""The longest a module of ``src`` may be."""
+
+
+def long_modules(src: Path = ROOT / "src") -> list[str]:
+    """The modules of ``src`` over :data:`MAX_MODULE_LINES` lines, with their length."""
+    return [f"{p.relative_to(src).as_posix()}: {n}" for p in sorted(src.rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES]
+
+
+def test_no_module_over_400_lines_and_no_mid_file_import(tmp_path):
+    assert long_modules() == []
+    assert [f"{p.relative_to(ROOT)}" for p in (ROOT / "src").rglob("*.py") if "noqa: E402" in p.read_text()] == []
+    (tmp_path / "prep").mkdir()
+    (tmp_path / "prep" / "long.py").write_text("x = 1\n" * 401)
+    (tmp_path / "prep" / "short.py").write_text("x = 1\n" * 400)
+    assert long_modules(tmp_path) == ["prep/long.py: 401"]

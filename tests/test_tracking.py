@@ -50,7 +50,7 @@ def test_the_experiment_opens_on_the_runs_view_and_a_run_records_its_demand_tens
     (tensor / "demand.parquet").write_bytes(b"demand of milan")
     from hashlib import sha256
 
-    from dswm.pipeline.jobs import log_demand_input
+    from dswm.pipeline.setup import log_demand_input
 
     with open_job(cfg, tmp_path) as run:
         full = log_demand_input(run, tensor, "milan", "evaluation")
@@ -147,7 +147,7 @@ def test_a_sigterm_as_the_run_is_created_ends_it_failed(store, tmp_path, monkeyp
 
     monkeypatch.setattr(MlflowClient, "create_run", create_then_term)
     before = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
-    with pytest.raises(tracking._Terminated, match="terminated by signal 15"):
+    with pytest.raises(tracking.Terminated, match="terminated by signal 15"):
         with open_job(cfg, tmp_path):
             raise AssertionError("the body must not run")
     (only,) = runs(client, info)

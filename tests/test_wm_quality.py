@@ -11,7 +11,7 @@ import yaml
 
 from conftest import ROOT
 from dswm import settings as runconfig
-from dswm.figures import qualitative as q
+from dswm.figures import qualitative as q, regions
 from dswm.figures.common import read_csv
 from dswm.figures.training import draw_training
 from dswm.figures.wm_quality import draw_wm_quality, rank_correlation, rmse_table
@@ -227,15 +227,15 @@ def test_busy_slot_skips_slot_zero():
     maps = np.ones((5, 2, 2))
     maps[0] *= 9.0
     maps[3] *= 2.0
-    assert q.busy_slot(maps) == 3
+    assert regions.busy_slot(maps) == 3
 
 
 def test_milan_crop_outline_on_the_real_grid():
-    ids, rings = q.read_milan_grid()
+    ids, rings = regions.read_milan_grid()
     assert ids.tolist() == list(range(1, 10001)) and rings.shape == (10000, 4, 2)
     grid = {"rows": 20, "cols": 20, "first_row": 40, "first_col": 40, "full_cols": 100}
-    assert q.milan_crop_squares(grid)[0, 0] == 4041 and q.milan_crop_squares(grid)[-1, -1] == 5960
-    outline = q.milan_crop_outline(ids, rings, grid)
+    assert regions.milan_crop_squares(grid)[0, 0] == 4041 and regions.milan_crop_squares(grid)[-1, -1] == 5960
+    outline = regions.milan_crop_outline(ids, rings, grid)
     sw, ne = rings[4040], rings[5959]   # squares 4041 (south-west corner of the crop) and 5960 (north-east)
     assert outline[0] == pytest.approx([sw[:, 0].min(), sw[:, 1].min()])
     assert outline[2] == pytest.approx([ne[:, 0].max(), ne[:, 1].max()])
@@ -247,9 +247,9 @@ def test_region_figure_draws_the_crop_maps_and_checks_the_crop(tmp_path):
     region = np.zeros((8, 9))
     region[2:5, 3:6] = 5.0
     meta = {"dataset": "shanghai", "crop": {"first_row": 2, "first_col": 3}, "grid": {"rows": 3, "cols": 3}}
-    q.check_region(region, meta)
+    regions.check_region(region, meta)
     with pytest.raises(ValueError, match="densest 3x3 window"):
-        q.check_region(region, {**meta, "crop": {"first_row": 0, "first_col": 0}})
+        regions.check_region(region, {**meta, "crop": {"first_row": 0, "first_col": 0}})
     true = np.arange(9.0).reshape(3, 3)
     out = out_paths(tmp_path, "qualitative_shanghai")
     q.draw_region(dataset="shanghai", label="Shanghai", region=region, origin=(2, 3), true=true,
@@ -264,5 +264,5 @@ def test_region_figure_draws_the_crop_maps_and_checks_the_crop(tmp_path):
 def test_day_profiles_split_weekdays_from_weekends():
     demand = np.stack([np.full((2, 1, 1), v) for v in (1.0, 3.0, 5.0)])
     meta = {"dataset": "toy", "days": [{"weekend": False}, {"weekend": True}, {"weekend": False}]}
-    weekday, weekend, n_wd, n_we = q.day_profiles(demand, meta)
+    weekday, weekend, n_wd, n_we = regions.day_profiles(demand, meta)
     assert weekday.item() == 3.0 and weekend.item() == 3.0 and (n_wd, n_we) == (2, 1)

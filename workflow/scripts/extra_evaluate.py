@@ -4,7 +4,7 @@ from pathlib import Path
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
-from dswm.pipeline.jobs import extra_evaluate_job
+from dswm.pipeline.extra import extra_evaluate_job
 from dswm.settings import read_param
 
 w, inp, p, out = snakemake.wildcards, snakemake.input, snakemake.params, snakemake.output  # noqa: F821

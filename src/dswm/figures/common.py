@@ -1,16 +1,14 @@
-"""What every figure shares: the Agg backend, the corner note, and the atomic PNG + PDF + CSV writer."""
+"""What every figure shares: pyplot (on the package's Agg backend), the corner note, and the atomic PNG + PDF +
+CSV writer."""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
-import matplotlib
+import matplotlib.pyplot as plt  # the Agg backend is set by the package (dswm/figures/__init__.py)
 import polars as pl
 
 from prep.atomic import atomic_path
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 
 DPI = 150
 """Raster resolution of the PNG files (the PDF is vector)."""

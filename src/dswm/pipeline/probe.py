@@ -8,10 +8,9 @@ from typing import Any, Mapping
 
 import polars as pl
 
-from dswm.config import stable_hash
-from dswm.methods import registry, snapshots
-from dswm.pipeline import tracking
-from dswm.pipeline.jobs import DAY_METRICS, _as_used, _common, _load_tensor, _workdir_relative
+from dswm.methods import snapshots
+from dswm.pipeline.jobs import DAY_METRICS
+from dswm.pipeline.setup import build_controller, load_tensor, open_run, set_up, workdir_relative
 from dswm.protocol import probe
 from dswm.protocol.evaluation import evaluate
 from dswm.settings import Display, EvaluationSettings
@@ -44,28 +43,27 @@ def probe_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display:
         The probe rows: the evaluation's per-day columns (``split`` = "probe") and ``dswm.protocol.probe``'s
         PROBE_COLUMNS, one row per requested fraction, in order.
     """
-    ev, scenario, m = _common(job, "evaluation", EvaluationSettings, intensity)
-    job = _as_used(job, scenario)
-    tensor = _load_tensor(tensor_dir)
+    s = set_up(job, "evaluation", EvaluationSettings, intensity)
+    ev = s.settings
+    tensor = load_tensor(tensor_dir)
     day = probe.probe_day(tensor)
     entries = snapshots.read_index(snapshots_dir)
     evaluated = None
     if evaluation is not None:
         on_day = pl.read_parquet(evaluation).filter(pl.col("day") == day)["sr_mean"]
         evaluated = float(on_day[0]) if len(on_day) else None
-    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage="probe", dataset=dataset, method=method,
-                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo, keep=[out],
-                          kind="probe") as run:
+    with open_run(s, mlflow_cfg=mlflow_cfg, stage="probe", dataset=dataset, method=method, seed=seed, repo=repo,
+                  keep=[out], kind="probe") as run:
         run.set_tags({"probe_day": tensor.labels[day], "diagnostic_only": "true",
-                      "snapshots": _workdir_relative(snapshots_dir)})
+                      "snapshots": workdir_relative(snapshots_dir)})
         scored: dict[str, dict] = {}
         rows = []
         for e in entries:
             if e["sha256"] not in scored:  # fractions reached at the same unit share one snapshot
-                ctrl = registry.build(method, target=m.target, options=m.options, seed=seed, device=ev.device)
+                ctrl = build_controller(s, method, seed)
                 ctrl.load(e["path"])
-                res = evaluate(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed,
-                               limits={"id": None, "ood": None}, profile=job["profile"], device=ev.device,
+                res = evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
+                               limits={"id": None, "ood": None}, profile=s.job["profile"], device=ev.device,
                                batch_days=ev.batch_days, trajectory=False,
                                progress_interval_s=display.progress_mininterval_s, days={probe.PROBE_SPLIT: [day]})
                 scored[e["sha256"]] = res.days.row(0, named=True)
@@ -73,7 +71,7 @@ def probe_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display:
             rows.append({**row, "probe": True, "fraction": float(e["fraction"]),
                          "fraction_done": float(e["fraction_done"]), "done": int(e["done"]), "total": int(e["total"]),
                          "n_transitions": int(e["n_transitions"]), "final": int(e["done"]) == int(e["total"]),
-                         "snapshot": _workdir_relative(e["path"]), "snapshot_sha256": e["sha256"],
+                         "snapshot": workdir_relative(e["path"]), "snapshot_sha256": e["sha256"],
                          "evaluated_sr_mean": evaluated})
             run.log_metrics({f"probe/{k}": row[k] for k in DAY_METRICS if row.get(k) is not None},
                             step=int(e["n_transitions"]))

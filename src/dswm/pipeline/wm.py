@@ -17,18 +17,13 @@ from typing import Any, Mapping
 
 import numpy as np
 import polars as pl
-import torch
 
-from dswm.config import build, stable_hash, to_plain
-from dswm.methods import registry
+from dswm.config import build, to_plain
 from dswm.methods.dswm import quality
-from dswm.pipeline import tracking
-from dswm.pipeline.allocator import keep_freed_memory
-from dswm.pipeline.jobs import model_record
+from dswm.pipeline.setup import build_controller, load_source_model, load_tensor, open_run, set_up
 from dswm.protocol.replay import replay
-from dswm.settings import Display, EvalDayLimits, EvaluationSettings, MethodSettings, calibrated_scenario
+from dswm.settings import Display, EvalDayLimits, EvaluationSettings
 from dswm.sim.core import grid_of
-from dswm.sim.scenario import Scenario
 from prep.atomic import atomic_path, save_npz, write_json
 from prep.rawio import sha256_file
 
@@ -88,28 +83,19 @@ def wm_quality_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], dis
     Raises:
         ValueError: the model does not hash to its manifest's ``model_sha256``, or the method has no world model.
     """
-    from prep.tensor import load
-
-    ev = build(EvaluationSettings, job["evaluation"], "evaluation")
-    torch.set_num_threads(ev.torch_threads)
-    keep_freed_memory()
-    scenario = calibrated_scenario(Scenario.from_dict(job["scenario"]), intensity)
-    job = {**job, "scenario": to_plain(scenario)}
-    m = MethodSettings.from_plain(job["method"], "method")
+    s = set_up(job, "evaluation", EvaluationSettings, intensity)
+    ev, scenario, m, job = s.settings, s.scenario, s.method, s.job
     horizon = int(job["wm_quality"]["horizon"])
     main = pl.read_parquet(main_days)
     days = days_to_replay(main, build(EvalDayLimits, job["replay_days"], "figures.eval_days"), str(main_days))
-    tensor = load(tensor_dir)
-    with tracking.job_run(mlflow_cfg=mlflow_cfg, settings=job, stage=STAGE, dataset=dataset, method=m.name,
-                          seed=seed, config_hash=stable_hash(job, length=12), repo=repo,
-                          keep=[rmse_out, returns_out, maps_out], kind="wm_quality") as run:
-        ctrl = registry.build(m.name, target=m.target, options=m.options, seed=seed, device=ev.device)
-        record = model_record(method=m.name, source=m.training_source or m.name, model=model, manifest=manifest)
-        ctrl.load(model)
+    tensor = load_tensor(tensor_dir)
+    with open_run(s, mlflow_cfg=mlflow_cfg, stage=STAGE, dataset=dataset, method=m.name, seed=seed, repo=repo,
+                  keep=[rmse_out, returns_out, maps_out], kind="wm_quality") as run:
+        ctrl = build_controller(s, m.name, seed)
+        record = load_source_model(run, ctrl, m, model=model, manifest=manifest)
         if getattr(ctrl, "model", None) is None or ctrl.settings.planner is None:
             raise ValueError(f"{m.name}: no world model and planner to measure (expected a DSWM method)")
-        run.set_tags({"train_source": record["train_source"], "model_path": record["model"],
-                      "model_sha256": record["model_sha256"], "data_source": tensor.meta["source"]})
+        run.set_tags({"data_source": tensor.meta["source"]})
         plays, result = replay(tensor=tensor, controller=ctrl, scenario=scenario, seed=seed, days=days,
                                profile=job["profile"], device=ev.device,
                                progress_interval_s=display.progress_mininterval_s)

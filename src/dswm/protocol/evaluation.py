@@ -272,7 +272,7 @@ def write_days(days: pl.DataFrame, path: str | Path, model_record: Mapping[str, 
         path: the result file.
         model_record: {field: value} for every field of :data:`MODEL_RECORD_FIELDS`.
         method_record: {field: value} for every field of :data:`METHOD_RECORD_FIELDS`
-            (``dswm.pipeline.jobs.method_record``): ``method`` and ``class`` strings, ``search`` a mapping or None,
+            (``dswm.pipeline.setup.method_record``): ``method`` and ``class`` strings, ``search`` a mapping or None,
             everything JSON-serializable.
 
     Raises:
