@@ -19,6 +19,7 @@ import datetime as dt
 import gzip
 import json
 import os
+import shutil
 from pathlib import Path
 from zoneinfo import ZoneInfo
 
@@ -331,3 +332,12 @@ def clean(tmp_path_factory):
     """The clean tree, built once per module: (its root, its settings)."""
     root = tmp_path_factory.mktemp("clean")
     return root, build_clean_tree(root)
+
+
+@pytest.fixture
+def tree(clean, tmp_path):
+    """A private copy of the clean tree (file times kept) and its settings."""
+    root, settings = clean
+    dst = tmp_path / "tree"
+    shutil.copytree(root, dst)
+    return dst, settings

@@ -81,15 +81,15 @@ def run_smoke(work: Path, name: str, *targets: str, limit_s: float = LIMIT_S) ->
     return work
 
 
-def stop(proc: subprocess.Popen) -> None:
-    """End a local Snakemake run started in its own session: SIGTERM to its process group (Snakemake and its jobs),
-    SIGKILL after 60 s."""
+def stop(proc: subprocess.Popen, grace: float = 60.0) -> None:
+    """End a process started in its own session (a local Snakemake run and its jobs, an engine): SIGTERM to its
+    process group, SIGKILL after ``grace`` seconds."""
     if proc.poll() is not None:
         return
     with contextlib.suppress(ProcessLookupError):
         os.killpg(proc.pid, signal.SIGTERM)
     try:
-        proc.wait(timeout=60)
+        proc.wait(timeout=grace)
     except subprocess.TimeoutExpired:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)

@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +18,13 @@ import polars as pl
 import pytest
 
 from audit_fixtures import (T0, clean, method_record, model_record,  # noqa: F401 (fixtures)
-                            one_torch_thread, prepare, write_results, write_training)
+                            one_torch_thread, prepare, tree, write_results, write_training)
 from audits import crop, derived, protocol, splits, statistics, training
 from audits.__main__ import main
 from audits.context import AuditContext
 from dswm.settings import Settings
 
 
-@pytest.fixture
-def tree(clean, tmp_path):
-    """A private copy of the clean tree (file times kept) and its settings."""
-    root, settings = clean
-    dst = tmp_path / "tree"
-    shutil.copytree(root, dst)
-    return dst, settings
 
 
 def run(root: Path, settings: Settings, check):

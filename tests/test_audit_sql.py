@@ -16,7 +16,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from audit_fixtures import clean, one_torch_thread, prepare  # noqa: F401 (fixtures)
+from audit_fixtures import clean, one_torch_thread, prepare, tree  # noqa: F401 (fixtures)
 from audits import crop, sql, statistics
 from audits.context import AuditContext, label_range
 from test_audit import milan_train_p99_from_raw
@@ -79,12 +79,6 @@ MUTATIONS = {
 }
 
 
-@pytest.fixture
-def tree(clean, tmp_path):
-    root, settings = clean
-    dst = tmp_path / "tree"
-    shutil.copytree(root, dst)
-    return dst, settings
 
 
 @pytest.mark.parametrize("mutation, first, p99_moves", [

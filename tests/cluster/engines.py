@@ -34,6 +34,11 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+if __name__ == "__main__":  # run by hand: tests/ holds the shared helpers that pytest puts on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from smoke import stop  # noqa: E402
+
 SLURM_CONF = Path("/etc/slurm/slurm.conf")
 SLURMDBD_CONF = SLURM_CONF.with_name("slurmdbd.conf")
 MARK = "# written by tests/cluster/engines.py (the loopback cluster of the `cluster` tests); removed at its stop"
@@ -158,15 +163,7 @@ class LoopbackEngines:
         """Stop every engine started, by PID, newest first (SIGTERM, then SIGKILL after 20 s); remove the SLURM
         configuration this harness wrote."""
         for name, proc in reversed(self.procs):
-            if proc.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait(timeout=10)
+            stop(proc, grace=20)
         self.procs.clear()
         if self.pg_root is not None:
             shutil.rmtree(self.pg_root, ignore_errors=True)
