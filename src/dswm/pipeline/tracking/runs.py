@@ -160,16 +160,15 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
     client = store_client(mlflow_cfg)
     key = f"{stage}/{dataset}/{method}/seed{seed}"
     try:
-        # Earlier runs of the job key are looked up in both experiments: a store from before the figures' runs had
-        # their own experiment holds them in the main one, and they are replaced as any earlier run.
-        exp_id, both = run_experiments(client, mlflow_cfg, kind)
         workdir = workdir_tag()
-        if not uses_server(mlflow_cfg):
+        if not uses_server(mlflow_cfg):  # a store copied with its tree is made this tree's before anything is read
             main = main_experiment(client, mlflow_cfg)
             if main.tags.get(TREE_TAG) != workdir or main.artifact_location != \
                     Path(mlflow_cfg["artifacts"]).resolve().as_uri():
-                if adopt_store(mlflow_cfg, workdir=workdir) is not None:  # a store copied with its tree
-                    exp_id, both = run_experiments(client, mlflow_cfg, kind)
+                adopt_store(mlflow_cfg, workdir=workdir)
+        # Earlier runs of the job key are looked up in both experiments: a store from before the figures' runs had
+        # their own experiment holds them in the main one, and they are replaced as any earlier run.
+        exp_id, both = run_experiments(client, mlflow_cfg, kind)
         for stale in _runs_of(client, both, key, "RUNNING", workdir):  # left behind by a killed job
             retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     except TrackingError as err:
