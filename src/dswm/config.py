@@ -8,22 +8,36 @@ wrong type, raises :class:`ConfigError` naming the dotted key, what was expected
 ``ConfigError`` and ``build`` are defined in :mod:`prep.typed`, below both packages, so the data preparation (which
 imports nothing of ``dswm``) raises and builds with the same ones; every ``dswm`` module takes them from here.
 This module imports nothing else from the project: every layer may use it.
+
+A settings field states its type (the annotation), its constraint (``setting("count")``, :func:`setting`) and its
+meaning (the docstring under it) once; :func:`settings_schema` and :func:`method_schema` turn such a dataclass into the
+JSON schema of its config section, so the schema of config.yaml does not repeat them.
 """
 from __future__ import annotations
 
+import ast
 import copy
 import dataclasses
+import functools
 import hashlib
+import inspect
 import json
 import re
+import textwrap
+import typing
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import yaml
 
-from prep.typed import ConfigError, build
+from prep.typed import ENUM, KINDS, SECTION, ConfigError, build, check_fields, fragment, setting
 
-__all__ = ["ConfigError", "build", "canonical_json", "load_yaml", "merge", "stable_hash", "to_plain", "with_budget"]
+__all__ = ["ConfigError", "ENUM", "KINDS", "SECTION", "build", "canonical_json", "check_fields", "field_docs",
+           "load_yaml", "merge", "method_schema", "setting", "settings_schema", "stable_hash", "to_plain",
+           "with_budget"]
+
+PROFILE_NAME = "^[A-Za-z_][A-Za-z0-9_-]*$"
+"""The names a ``budgets`` mapping accepts (profile names)."""
 
 
 def stable_hash(obj: Any, *, length: int = 16) -> str:
@@ -158,3 +172,86 @@ class ConfigSources:
             return line if named is None else self.of(named.group(1)) + line[len("config.yaml"):]
 
         return "\n".join(one(line) for line in text.split("\n"))
+
+
+# ---- the JSON schema of a settings dataclass --------------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring of each field of the dataclass ``cls`` (the string literal under its annotation, whitespace
+    folded), its dataclass bases' included; a field without one is absent."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        except (OSError, TypeError):
+            continue
+        for node, after in zip(body, body[1:]):
+            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                    and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def _name(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def settings_schema(cls: type, *, partial: bool = False) -> dict:
+    """The JSON schema of a config section that :func:`build` makes into the settings dataclass ``cls``.
+
+    Each field is a property: its constraint (:func:`setting`; a name of :data:`KINDS` as ``$ref`` to the schema's
+    ``$defs`` of that name, which the config schema takes from :data:`KINDS`), its docstring as ``title``; a nested
+    settings dataclass (``setting(SECTION)``) is its own block. ``required``: the fields without a default; unknown
+    keys are refused.
+
+    Args:
+        cls: a keyword-only settings dataclass whose every field states a constraint.
+        partial: the block of a ``budgets.<profile>`` entry: no key required (nested sections alike).
+
+    Raises:
+        TypeError: a field states no constraint.
+    """
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    props: dict[str, Any] = {}
+    required = []
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        spec = f.metadata.get("setting")
+        if spec is None:
+            raise TypeError(f"{_name(cls)}.{f.name} states no constraint (dswm.config.setting)")
+        if spec.ref is not None:
+            prop = {"$ref": f"#/$defs/{spec.ref}"}
+        elif spec.kind == SECTION:
+            inner = typing.get_args(hints[f.name]) or (hints[f.name],)
+            prop = settings_schema(next(a for a in inner if a is not type(None)), partial=partial)
+        elif spec.kind in KINDS:
+            prop = {"$ref": f"#/$defs/{spec.kind}", "description": KINDS[spec.kind]["description"]}
+        else:
+            prop = fragment(spec, hints[f.name])
+        if f.name in docs:
+            prop["title"] = docs[f.name]
+        props[f.name] = prop
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            required.append(f.name)
+    block: dict[str, Any] = {"type": "object", "additionalProperties": False,
+                             "description": f"a mapping of the settings of {_name(cls)}",
+                             "x-settings-class": _name(cls), "properties": props}
+    if required and not partial:
+        block["required"] = required
+    return block
+
+
+def method_schema(cls: type) -> dict:
+    """The JSON schema of a method's section ``methods.<name>`` whose settings are the dataclass ``cls``: the
+    :func:`settings_schema` of ``cls`` and ``budgets``, a mapping profile -> some of the same settings (merged over
+    the section by :func:`with_budget`)."""
+    block = settings_schema(cls)
+    budgets = {"type": "object", "additionalProperties": False,
+               "description": "a mapping profile -> {setting: value} overriding these settings under that profile",
+               "patternProperties": {PROFILE_NAME: settings_schema(cls, partial=True)}}
+    block["properties"] = {"budgets": budgets, **block["properties"]}
+    return block
