@@ -99,7 +99,8 @@ def test_settings_resolve_merges_the_budget_and_reads_only_the_tdmpc_section():
     with pytest.raises(ConfigError, match=r"methods.tdmpc: missing key\(s\) \['precollect'\]"):
         resolve(missing, profile="paper")
     bad = {"methods": {"tdmpc": {**section, "precollect": {**section["precollect"], "collect_parallel": 0}}}}
-    with pytest.raises(ConfigError, match="collect_parallel >= 1"):
+    with pytest.raises(ConfigError, match=r"^config key methods\.tdmpc\.precollect\.collect_parallel: expected an "
+                                          r"integer >= 1, found 0$"):
         resolve(bad, profile="paper")
     assert TDMPCController.options_from_plain(name="tdmpc", data=dataclasses.asdict(s)) == s
     with pytest.raises(ConfigError, match="n_elites"):

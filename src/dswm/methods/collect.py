@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from dswm.config import ConfigError
+from dswm.config import ENUM, check_fields, setting
 from dswm.methods.replay import SequenceReplay
 from dswm.methods.search import SearchSettings
 from dswm.sim.core import fleet_state_from_obs
@@ -29,24 +29,22 @@ COLLECT_POLICIES = ("lloyd", "greedy")
 class CollectSettings:
     """How episodes are pre-collected (values and reasons in config.yaml ``dswm.training``)."""
 
-    collect_policy: Literal["lloyd", "greedy"]
+    collect_policy: Literal["lloyd", "greedy"] = setting(ENUM)
     """"lloyd" (move to the demand centroid of the UAV's Voronoi region) or "greedy" (dswm.methods.classical)."""
-    collect_parallel: int
+    collect_parallel: int = setting("count")
     """Training days stepped together during pre-collection."""
-    explore_std: float
+    explore_std: float = setting("nonnegative")
     """Std of the Gaussian noise added to the heuristic's moves (fraction of D_max)."""
-    bw_explore_std: float
+    bw_explore_std: float = setting("nonnegative")
     """Std of the Gaussian bandwidth logits of the pre-collection policy."""
-    collect_search: SearchSettings
+    collect_search: SearchSettings = setting(ref="search")
     """The search of ``collect_policy: greedy`` (a cheap one: pre-collection needs varied, sensible moves)."""
 
+    section: ClassVar[str] = "collection settings"
+    """The config key of the section, for messages (a subclass's own)."""
+
     def __post_init__(self):
-        if self.collect_parallel < 1 or self.explore_std < 0 or self.bw_explore_std < 0 \
-                or self.collect_policy not in COLLECT_POLICIES:
-            raise ConfigError(f"collection settings: expected collect_parallel >= 1, stds >= 0 and collect_policy in "
-                              f"{COLLECT_POLICIES}; found collect_parallel={self.collect_parallel}, explore_std="
-                              f"{self.explore_std}, bw_explore_std={self.bw_explore_std}, collect_policy="
-                              f"{self.collect_policy!r}")
+        check_fields(self, self.section)
 
 
 def lloyd_step(x: torch.Tensor, assoc: torch.Tensor, pos: torch.Tensor, cells: torch.Tensor,

@@ -29,7 +29,7 @@ import torch
 from pymoo.operators.survival.rank_and_crowding.metrics import get_crowding_function
 from pymoo.util.nds.non_dominated_sorting import NonDominatedSorting
 
-from dswm.config import ConfigError, stable_hash
+from dswm.config import check_fields, setting, stable_hash
 from dswm.methods.base import DayContext
 from dswm.methods.classical import BatchedController
 from dswm.methods.search import to_action
@@ -49,18 +49,15 @@ _CROWDING = get_crowding_function("cd")  # NSGA-II crowding distance
 class InsWoaSettings:
     """Strength of the per-slot whale optimization (config.yaml ``methods.ins_woa``)."""
 
-    population: int
+    population: int = setting(schema={"type": "integer", "minimum": 4, "description": "an integer >= 4"})
     """Whales per day and slot (at least 4: two seeds and two random whales)."""
-    iterations: int
+    iterations: int = setting("count")
     """WOA iterations per slot; each scores ``population`` new fleets per day in one physics call."""
-    region_margin_cells: float
+    region_margin_cells: float = setting("nonnegative")
     """Cells by which a UAV's Voronoi bounding box is widened on every side (0: the region's own cells only)."""
 
     def __post_init__(self):
-        if self.population < 4 or self.iterations < 1 or self.region_margin_cells < 0:
-            raise ConfigError(f"methods.ins_woa: expected population >= 4, iterations >= 1 and "
-                              f"region_margin_cells >= 0, found population={self.population}, "
-                              f"iterations={self.iterations}, region_margin_cells={self.region_margin_cells}")
+        check_fields(self, "methods.ins_woa")
 
 
 class WoaResult(NamedTuple):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ClassVar
 
 import numpy as np
 import torch
@@ -31,6 +31,8 @@ HISTORY_KEYS = ("loss", "dem", "cal", "kl", "kl_dyn", "kl_rep", "lpr_pred", "lpr
 class TrainConfig(CollectSettings):
     """Optimization and pre-collection settings (values and reasons in config.yaml ``dswm.training``); the
     pre-collection's fields are ``CollectSettings``' (``dswm.methods.collect.collect`` takes this whole config)."""
+
+    section: ClassVar[str] = "dswm.training"
 
     lr: float
     """Adam's learning rate."""

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Mapping, NamedTuple
 import numpy as np
 import torch
 
-from dswm.config import ConfigError
+from dswm.config import ConfigError, check_fields, setting
 from dswm.methods.base import Controller, DayContext
 from dswm.methods.jtoratc.model import (Slot, association_block, bandwidth_block, concave_bridges,
                                         fit_bandwidth_logit, nearest, objective, rate_surrogate)
@@ -47,42 +47,40 @@ log = logging.getLogger(__name__)
 class JTORATCSettings:
     """JTORATC's settings (config.yaml ``methods.jtoratc``)."""
 
-    w_delay: float
+    w_delay: float = setting("nonnegative")
     """Weight of the delay term D (mean per-user delay of a slot's traffic, in slots)."""
-    w_energy: float
+    w_energy: float = setting("nonnegative")
     """Weight of the energy term E (the slot's propulsion power over the fleet's hover power)."""
-    w_load: float
+    w_load: float = setting("nonnegative")
     """Weight of the load-imbalance term L (squared coefficient of variation of the UAVs' demand shares)."""
-    bcd_iters: int
+    bcd_iters: int = setting("count")
     """Most BCD rounds (association, bandwidth, trajectory) per solve."""
-    bcd_tol: float
+    bcd_tol: float = setting("nonnegative")
     """A round that lowers J by less than this fraction of it ends the BCD."""
-    assoc_iters: int
+    assoc_iters: int = setting("count")
     """Projected-gradient steps on the relaxed association per round."""
-    sca_iters: int
+    sca_iters: int = setting("count")
     """Most SCA steps of the trajectory block per round."""
-    sca_tol: float
+    sca_tol: float = setting("nonnegative")
     """An SCA step that lowers J by less than this fraction of it ends the trajectory block."""
-    trust_region_m: float
+    trust_region_m: float = setting("positive")
     """Trust-region radius of an SCA step around its expansion point (halved after a step that does not lower J)."""
-    solver: str
+    solver: str = setting(
+        schema={"type": "string", "pattern": "^[A-Z_]+$",
+                "description": "a cvxpy solver name in capitals, e.g. CLARABEL"})
     """cvxpy solver of the SCA step."""
-    solve_budget_ms: float
+    solve_budget_ms: float = setting("positive")
     """Degradation rule: once a solve takes longer than this (wall time), the rest of the day is degraded."""
-    degrade_every: int
+    degrade_every: int = setting("count")
     """Slots per solve under the degradation rule; the plan is held in between."""
-    degraded_sca_iters: int
+    degraded_sca_iters: int = setting("count")
     """SCA steps per round under the degradation rule."""
 
     def __post_init__(self):
-        bad = [n for n in ("w_delay", "w_energy", "w_load", "bcd_tol", "sca_tol") if getattr(self, n) < 0]
-        bad += [n for n in ("bcd_iters", "assoc_iters", "sca_iters", "degrade_every", "degraded_sca_iters")
-                if getattr(self, n) < 1]
-        bad += [n for n in ("trust_region_m", "solve_budget_ms") if getattr(self, n) <= 0]
-        if bad or self.w_delay + self.w_energy + self.w_load <= 0:
-            raise ConfigError(f"config key methods.jtoratc: expected weights and tolerances >= 0 with a positive "
-                              f"weight, iteration counts >= 1, a positive trust region and budget; found "
-                              f"{ {n: getattr(self, n) for n in bad} or dataclasses.asdict(self) }")
+        check_fields(self, "methods.jtoratc")
+        if self.w_delay + self.w_energy + self.w_load <= 0:
+            raise ConfigError(f"config key methods.jtoratc: expected w_delay, w_energy and w_load with a positive sum, "
+                              f"found {self.w_delay}, {self.w_energy} and {self.w_load}")
 
 
 class SlotPlan(NamedTuple):

@@ -18,7 +18,7 @@ import torch
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
-from dswm.config import ConfigError
+from dswm.config import ConfigError, check_fields, setting
 
 
 # ---- settings --------------------------------------------------------------------------------------------
@@ -28,62 +28,42 @@ class SB3Params:
 
     section: ClassVar[str] = "methods"
 
-    n_envs: int
+    n_envs: int = setting("count")
     """Training days stepped together by one core call; a round is n_envs day-episodes."""
-    net_arch: tuple[int, ...]
+    net_arch: tuple[int, ...] = setting("net_arch")
     """Hidden-layer widths of the actor's MLP and of each critic's (separate networks)."""
-    learning_rate: float
+    learning_rate: float = setting("positive")
     """Adam's learning rate (constant) of every network."""
-    gamma: float
+    gamma: float = setting("discount")
     """Discount per slot."""
-    batch_size: int
+    batch_size: int = setting("count")
     """Minibatch size of a gradient step."""
 
     def _fail(self, key: str, expected: str) -> None:
         raise ConfigError(f"config key {self.section}.{key}: expected {expected}, found {getattr(self, key)!r}")
 
     def __post_init__(self):
-        for key in ("n_envs", "batch_size"):
-            if getattr(self, key) < 1:
-                self._fail(key, "an integer >= 1")
-        if not self.net_arch or any(w < 1 for w in self.net_arch):
-            self._fail("net_arch", "a non-empty list of layer widths >= 1")
-        if not self.learning_rate > 0:
-            self._fail("learning_rate", "a number > 0")
-        if not 0 < self.gamma <= 1:
-            self._fail("gamma", "a number in (0, 1]")
+        check_fields(self, self.section)  # every field's, a subclass's included
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class PPOParams(SB3Params):
     """SB3 PPO's hyper-parameters: one rollout is one round, n_envs x 143 transitions; batch_size divides it."""
 
-    n_epochs: int
+    n_epochs: int = setting("count")
     """Passes over each rollout."""
-    gae_lambda: float
+    gae_lambda: float = setting("fraction")
     """GAE's lambda."""
-    clip_range: float
+    clip_range: float = setting("positive")
     """PPO's ratio clipping."""
-    ent_coef: float
+    ent_coef: float = setting("nonnegative")
     """Weight of the entropy bonus."""
-    vf_coef: float
+    vf_coef: float = setting("positive")
     """Weight of the value loss."""
-    max_grad_norm: float
+    max_grad_norm: float = setting("positive")
     """Gradient-norm clipping."""
-    log_std_init: float
+    log_std_init: float = setting("number")
     """Initial log std of the Gaussian policy (state-independent, learned)."""
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.n_epochs < 1:
-            self._fail("n_epochs", "an integer >= 1")
-        if not 0 <= self.gae_lambda <= 1:
-            self._fail("gae_lambda", "a number in [0, 1]")
-        for key in ("clip_range", "vf_coef", "max_grad_norm"):
-            if not getattr(self, key) > 0:
-                self._fail(key, "a number > 0")
-        if self.ent_coef < 0:
-            self._fail("ent_coef", "a number >= 0")
 
     def rollout_check(self, horizon: int) -> None:
         """The check that needs the day's length: batch_size divides the rollout of n_envs x ``horizon``."""

@@ -39,7 +39,7 @@ import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from dswm.config import stable_hash, to_plain
+from dswm.config import setting, stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
 from dswm.methods.rl.common import DumpEachUpdate, PPOParams, SB3Params, rng_states, set_rng_states
 from dswm.methods.rl.logger import HistoryWriter, history_logger
@@ -63,16 +63,13 @@ class SB3Settings(SB3Params):
     """Settings shared by the SB3 methods (config.yaml ``methods.ppo`` / ``methods.sac``): the learner's
     (:class:`~dswm.methods.rl.common.SB3Params`) and the budget."""
 
-    day_episodes: int
+    day_episodes: int = setting("count")
     """Training budget in whole day-episodes of 143 transitions, a multiple of n_envs."""
-    checkpoint_every: int
+    checkpoint_every: int = setting("count")
     """Rounds between checkpoints (one is also written at the end)."""
 
     def __post_init__(self):
         super().__post_init__()
-        for key in ("day_episodes", "checkpoint_every"):
-            if getattr(self, key) < 1:
-                self._fail(key, "an integer >= 1")
         if self.day_episodes % self.n_envs:
             self._fail("day_episodes", f"a multiple of n_envs = {self.n_envs} (training budgets are whole rounds)")
 
@@ -90,34 +87,25 @@ class SACSettings(SB3Settings):
 
     section: ClassVar[str] = "methods.sac"
 
-    buffer_size: int
+    buffer_size: int = setting("count")
     """Replay capacity in transitions (each holds two flat observations: memory ~ 8 D bytes per transition)."""
-    learning_starts: int
+    learning_starts: int = setting("natural")
     """Transitions of uniform random actions before the first update."""
-    tau: float
+    tau: float = setting("discount")
     """Polyak rate of the target critics."""
-    train_freq: int
+    train_freq: int = setting("count")
     """Vectorized steps (n_envs transitions each) between updates."""
-    gradient_steps: int
+    gradient_steps: int = setting("count")
     """Gradient steps per update."""
-    ent_coef_init: float
+    ent_coef_init: float = setting("positive")
     """Initial entropy coefficient."""
-    auto_entropy: bool
+    auto_entropy: bool = setting("flag")
     """Learn the entropy coefficient towards SB3's target entropy -dim(action) (else keep ent_coef_init)."""
 
     def __post_init__(self):
         super().__post_init__()
-        for key in ("buffer_size", "train_freq", "gradient_steps"):
-            if getattr(self, key) < 1:
-                self._fail(key, "an integer >= 1")
-        if self.learning_starts < 0:
-            self._fail("learning_starts", "an integer >= 0")
         if self.buffer_size < self.batch_size:
             self._fail("buffer_size", f"at least batch_size = {self.batch_size}")
-        if not 0 < self.tau <= 1:
-            self._fail("tau", "a number in (0, 1]")
-        if not self.ent_coef_init > 0:
-            self._fail("ent_coef_init", "a number > 0")
 
 
 # ---- controllers -----------------------------------------------------------------------------------------

@@ -8,9 +8,9 @@ keys: changing DSWM's budget does not change TD-MPC's.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal, Mapping
+from typing import Any, ClassVar, Literal, Mapping
 
-from dswm.config import ConfigError, build, with_budget
+from dswm.config import ENUM, SECTION, ConfigError, build, check_fields, setting, with_budget
 from dswm.methods.collect import CollectSettings
 from dswm.methods.tdmpc.planner import MPPIConfig
 
@@ -19,14 +19,10 @@ from dswm.methods.tdmpc.planner import MPPIConfig
 class PreCollect(CollectSettings):
     """TD-MPC's pre-collection (config.yaml ``methods.tdmpc.precollect``): the collection's settings and its size."""
 
-    transitions: int
-    """Decisions pre-collected, rounded up to whole days."""
+    section: ClassVar[str] = "methods.tdmpc.precollect"
 
-    def __post_init__(self):
-        if self.transitions < 1:
-            raise ConfigError(f"config key methods.tdmpc.precollect.transitions: expected an integer >= 1, found "
-                              f"{self.transitions}")
-        super().__post_init__()
+    transitions: int = setting("count")
+    """Decisions pre-collected, rounded up to whole days."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -34,92 +30,81 @@ class TDMPCSettings:
     """TD-MPC's settings (config.yaml ``methods.tdmpc``; values and reasons there)."""
 
     # ---- TOLD
-    latent: int
+    latent: int = setting("count")
     """Size of the latent state z."""
-    hidden: int
+    hidden: int = setting("count")
     """Width of every MLP (dynamics, reward, twin Q, policy, the encoder's head)."""
-    enc_channels: int
+    enc_channels: int = setting("count")
     """Channels of the encoder's first conv (the second has twice as many)."""
     # ---- planning (MPPI) and the TD horizon
-    horizon: int
+    horizon: int = setting("count")
     """H: slots of the latent rollout, in training (the consistency/reward/value horizon) and in planning."""
-    n_samples: int
+    n_samples: int = setting("count")
     """Action sequences sampled from the Gaussian per iteration."""
-    policy_share: float
+    policy_share: float = setting("nonnegative")
     """Extra sequences rolled out by the policy prior, as a fraction of ``n_samples`` (TD-MPC: 24 of 512)."""
-    n_elites: int
+    n_elites: int = setting("count")
     """Sequences that refit the Gaussian."""
-    iterations: int
+    iterations: int = setting("count")
     """Refits per slot."""
-    temperature: float
+    temperature: float = setting("positive")
     """Elite weights exp(temperature (G - max G)), as in TD-MPC: larger values concentrate them."""
-    momentum: float
+    momentum: float = setting("below_one")
     """Share of the previous iteration's mean kept in each refit."""
-    min_std: float
+    min_std: float = setting("nonnegative")
     """Floor of the refitted std; also the noise of the policy's sequences."""
-    max_std: float
+    max_std: float = setting("positive")
     """Initial std of every slot's Gaussian and the ceiling of the refitted one."""
     # ---- losses and optimization
-    gamma: float
+    gamma: float = setting("discount")
     """Discount of returns and TD targets."""
-    rho: float
+    rho: float = setting("discount")
     """Weight rho^t of the rollout's step t in every loss."""
-    tau: float
+    tau: float = setting("discount")
     """Polyak rate of the target network after every gradient step."""
-    consistency_coef: float
+    consistency_coef: float = setting("positive")
     """Weight of the latent-consistency loss."""
-    reward_coef: float
+    reward_coef: float = setting("nonnegative")
     """Weight of the reward loss."""
-    value_coef: float
+    value_coef: float = setting("nonnegative")
     """Weight of the TD value loss."""
-    lr: float
+    lr: float = setting("positive")
     """Adam learning rate of the encoder, dynamics, reward and Q."""
-    pi_lr: float
+    pi_lr: float = setting("positive")
     """Adam learning rate of the policy."""
-    grad_clip: float
+    grad_clip: float = setting("positive")
     """Global gradient-norm clip of each update."""
-    batch: int
+    batch: int = setting("count")
     """Sequences of H+1 observations per gradient step."""
     # ---- budgets
-    steps: int
+    steps: int = setting("count")
     """Gradient steps in all."""
-    seed_steps: int
+    seed_steps: int = setting("natural")
     """Of ``steps``, those taken on the pre-collected transitions before the first own episode."""
-    episodes: int
+    episodes: int = setting("natural")
     """Own-interaction day-episodes on TRAINING days (0: the pre-collection only)."""
-    parallel: int
+    parallel: int = setting("count")
     """Training days played together per interaction round."""
-    explore: Literal["mppi", "policy"]
+    explore: Literal["mppi", "policy"] = setting(ENUM)
     """Own-interaction behaviour: MPPI with its final std as noise (TD-MPC), or the policy plus noise."""
-    explore_std: float
+    explore_std: float = setting("nonnegative")
     """Noise std of ``explore: policy``."""
-    log_points: int
+    log_points: int = setting("count")
     """Points of the loss history (averages over equal windows of steps)."""
-    checkpoint_every: int
+    checkpoint_every: int = setting("count")
     """Gradient steps between complete checkpoints (every round's end and the last step write one too)."""
-    precollect: PreCollect
+    precollect: PreCollect = setting(SECTION)
     """The pre-collected transitions the training starts from."""
 
     def __post_init__(self):
-        counts = ("latent", "hidden", "enc_channels", "horizon", "n_samples", "n_elites", "iterations", "batch",
-                  "steps", "parallel", "log_points", "checkpoint_every")
-        bad = [n for n in counts if getattr(self, n) < 1]
-        bad += [n for n in ("seed_steps", "episodes") if getattr(self, n) < 0]
-        bad += [n for n in ("temperature", "lr", "pi_lr", "grad_clip", "max_std", "consistency_coef")
-                if getattr(self, n) <= 0]
-        bad += [n for n in ("reward_coef", "value_coef", "explore_std", "policy_share") if getattr(self, n) < 0]
-        bad += [n for n in ("gamma", "rho", "tau") if not 0.0 < getattr(self, n) <= 1.0]
-        bad += [n for n in ("momentum",) if not 0.0 <= self.momentum < 1.0]
-        bad += [n for n in ("min_std",) if not 0.0 <= self.min_std <= self.max_std]
-        if self.n_elites > self.n_samples:
-            bad.append("n_elites")
-        if self.seed_steps > self.steps or (self.episodes > 0 and self.seed_steps == self.steps):
-            bad.append("seed_steps")
+        check_fields(self, "methods.tdmpc")
+        wrong = {"min_std": self.min_std > self.max_std, "n_elites": self.n_elites > self.n_samples,
+                 "seed_steps": self.seed_steps > self.steps or (self.episodes > 0 and self.seed_steps == self.steps)}
+        bad = [n for n, w in wrong.items() if w]
         if bad:
-            raise ConfigError(f"config key methods.tdmpc: expected sizes >= 1, rates and coefficients > 0, gamma, rho "
-                              f"and tau in (0, 1], momentum in [0, 1), 0 <= min_std <= max_std, n_elites <= "
-                              f"n_samples and seed_steps < steps when there are episodes; found "
-                              f"{ {n: getattr(self, n) for n in sorted(set(bad))} }")
+            raise ConfigError(f"config key methods.tdmpc: expected min_std <= max_std, n_elites <= n_samples and "
+                              f"seed_steps < steps when there are episodes; found "
+                              f"{ {n: getattr(self, n) for n in bad} }")
 
     @property
     def n_policy(self) -> int:
