@@ -29,7 +29,8 @@ from dswm.settings.calibration import CALIBRATION_RECORD, calibrated_scenario, i
 from dswm.settings.model import MethodSettings, Settings, evaluated_as, needs_gpu
 from dswm.settings.resolver import (check_figures, check_profile_datasets, check_raw_files, resolve,
                                    select_profile)
-from dswm.settings.schema import SCHEMA, coerce_cli_strings, load_schema, validate_config
+from dswm.settings.schema import (SCHEMA, SETTINGS_MARKER, coerce_cli_strings, complete_schema, load_schema,
+                                  settings_class, validate_config)
 from dswm.settings.sections import (CalibrationSettings, Display, DoProbeSettings, EvalDayLimits,
                                     EvaluationSettings, FiguresSettings, JobResources, MlflowHttp, MlflowSettings,
                                     ResourceSettings, RoomSettings, Runtime, RunSettings, SampleEfficiencySettings,
@@ -47,7 +48,8 @@ __all__ = [
     "CALIBRATION_RECORD", "calibrated_scenario", "intensity_inputs", "read_intensity",
     "MethodSettings", "Settings", "evaluated_as", "needs_gpu",
     "check_figures", "check_profile_datasets", "check_raw_files", "resolve", "select_profile",
-    "SCHEMA", "coerce_cli_strings", "load_schema", "validate_config",
+    "SCHEMA", "SETTINGS_MARKER", "coerce_cli_strings", "complete_schema", "load_schema", "settings_class",
+    "validate_config",
     "CalibrationSettings", "Display", "DoProbeSettings", "EvalDayLimits", "EvaluationSettings", "FiguresSettings",
     "JobResources", "MlflowHttp", "MlflowSettings", "ResourceSettings", "RoomSettings", "Runtime", "RunSettings",
     "SampleEfficiencySettings", "ScalingSettings", "SelectionSettings", "SplitLabels", "TablesSettings",

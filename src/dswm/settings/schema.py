@@ -4,27 +4,80 @@ found; the strings ``--config`` passed read as numbers where the schema expects 
 The schema belongs to the workflow (``workflow/schemas/config.schema.yaml``, where Snakemake keeps it). :data:`SCHEMA`
 is the one place in ``src/`` that names that path: the default of :func:`dswm.settings.resolve` for a caller that
 passes none (the workflow passes its own).
+
+The file holds no method's settings: a method's section is a marker ``{x-settings: "package.module:ClassName"}`` naming
+its settings dataclass, and :func:`load_schema` puts the block generated from that class in its place
+(``dswm.config.method_schema``: each field's type, constraint and docstring), with the constraint vocabulary
+(``dswm.config.KINDS``) as the ``$defs`` of those names. Every caller reads the schema through :func:`load_schema`.
 """
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
+import importlib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import jsonschema
 import yaml
 
-from dswm.config import ConfigError, ConfigSources, lookup
+from dswm.config import KINDS, ConfigError, ConfigSources, lookup, method_schema
 
 SCHEMA = Path(__file__).resolve().parents[3] / "workflow" / "schemas" / "config.schema.yaml"
 """The JSON schema of config.yaml, in the workflow beside ``src/``."""
 
 
+SETTINGS_MARKER = "x-settings"
+"""The key of a marker ``{x-settings: "package.module:ClassName"}``: the block of the settings dataclass it names."""
+
+
 def load_schema(path: str | Path) -> dict:
-    """Read the YAML JSON-schema of config.yaml."""
+    """Read the YAML JSON-schema of config.yaml, completed (:func:`complete_schema`)."""
     with Path(path).open() as fh:
-        return yaml.safe_load(fh)
+        return complete_schema(yaml.safe_load(fh), source=str(path))
+
+
+def settings_class(target: str, *, source: str = "the schema") -> type:
+    """The dataclass ``"package.module:ClassName"`` that a marker names."""
+    module_name, _, class_name = target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module_name), class_name, None)
+    except ImportError as err:
+        raise ConfigError(f"{source}: {SETTINGS_MARKER} {target!r}: cannot import {module_name!r} ({err})") from err
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise ConfigError(f"{source}: {SETTINGS_MARKER} {target!r}: expected 'package.module:ClassName' of a settings "
+                          f"dataclass, found {cls!r}")
+    return cls
+
+
+def complete_schema(schema: Mapping[str, Any], *, source: str = "the schema") -> dict:
+    """``schema`` with every marker ``{x-settings: "package.module:ClassName"}`` replaced by the block generated from
+    that settings dataclass (``dswm.config.method_schema``), and ``$defs`` holding ``dswm.config.KINDS``.
+
+    Raises:
+        ConfigError: a marker's class cannot be imported, or ``$defs`` defines a name of ``KINDS`` itself (the
+            vocabulary is stated once, in ``prep.typed``).
+    """
+    out = copy.deepcopy(dict(schema))
+    defs = out.setdefault("$defs", {})
+    clash = sorted(set(defs) & set(KINDS))
+    if clash:
+        raise ConfigError(f"{source}: $defs {clash} are the settings vocabulary, defined in prep.typed.KINDS only")
+    defs.update(copy.deepcopy(KINDS))
+
+    def fill(node: Any) -> Any:
+        if isinstance(node, Mapping):
+            if SETTINGS_MARKER in node:
+                if len(node) != 1:
+                    raise ConfigError(f"{source}: a {SETTINGS_MARKER} marker holds nothing else, found {sorted(node)}")
+                return method_schema(settings_class(node[SETTINGS_MARKER], source=source))
+            return {k: fill(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [fill(v) for v in node]
+        return node
+
+    return fill(out)
 
 
 def _key(path: Iterable[Any]) -> str:
@@ -63,7 +116,9 @@ def _message(err: jsonschema.ValidationError, source: str) -> str:
                              f"(expected a name matching {pattern})")
                 continue
             near = difflib.get_close_matches(name, allowed, n=1)
+            declared = err.schema.get("x-settings-class")
             hint = (f"; did you mean '{near[0]}'?" if near else
+                    f"; a new setting is a field of {declared}" if declared else
                     "; a new setting is declared in workflow/schemas/config.schema.yaml")
             lines.append(f"{source}: unknown key '{_key([*err.absolute_path, name])}' (expected one of "
                          f"{', '.join(allowed)}){hint}")
