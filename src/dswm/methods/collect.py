@@ -22,8 +22,6 @@ from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.fleet import available
 from dswm.sim.physics import associate, sum_per_uav
 
-COLLECT_POLICIES = ("lloyd", "greedy")
-
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class CollectSettings:

@@ -8,8 +8,6 @@ from typing import ClassVar, Literal
 from dswm.config import ENUM, setting
 from dswm.methods.rl.common import PPOParams
 
-SELECT_RULES = ("best_served_ratio", "max_scalarized")
-"""Rules that pick the executed policy among the archive members (:func:`.archive.select_member`)."""
 RESUME_FREE = ("generations", "checkpoint_every")
 """Settings a checkpoint may differ in and still resume (more generations continue a shorter run)."""
 DECISION_TIME = ("select_rule", "select_weight")
