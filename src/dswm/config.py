@@ -30,10 +30,10 @@ from typing import Any, Iterable, Mapping
 
 import yaml
 
-from prep.typed import ENUM, KINDS, SECTION, ConfigError, build, check_fields, fragment, setting
+from prep.typed import ENUM, FLAT, GIVEN, KINDS, SECTION, ConfigError, build, check_fields, fragment, setting
 
-__all__ = ["ConfigError", "ENUM", "KINDS", "SECTION", "build", "canonical_json", "check_fields", "field_docs",
-           "load_yaml", "merge", "method_schema", "setting", "settings_schema", "stable_hash", "to_plain",
+__all__ = ["ConfigError", "ENUM", "FLAT", "GIVEN", "KINDS", "SECTION", "build", "canonical_json", "check_fields",
+           "field_docs", "load_yaml", "merge", "method_schema", "setting", "settings_schema", "stable_hash", "to_plain",
            "with_budget"]
 
 PROFILE_NAME = "^[A-Za-z_][A-Za-z0-9_-]*$"
@@ -203,12 +203,14 @@ def settings_schema(cls: type, *, partial: bool = False) -> dict:
 
     Each field is a property: its constraint (:func:`setting`; a name of :data:`KINDS` as ``$ref`` to the schema's
     ``$defs`` of that name, which the config schema takes from :data:`KINDS`), its docstring as ``title``; a nested
-    settings dataclass (``setting(SECTION)``) is its own block. ``required``: the fields without a default; unknown
-    keys are refused.
+    settings dataclass (``setting(SECTION)``) is its own block, one whose keys sit in the section (``setting(FLAT)``)
+    adds its properties to this block's, and a field the caller passes (``setting(GIVEN)``) is no key. ``required``:
+    every key (:func:`build` requires each, a field's default serves code only); unknown keys are refused.
 
     Args:
         cls: a keyword-only settings dataclass whose every field states a constraint.
-        partial: the block of a ``budgets.<profile>`` entry: no key required (nested sections alike).
+        partial: the block of a ``budgets.<profile>`` entry or of an override: no key required (nested sections
+            alike).
 
     Raises:
         TypeError: a field states no constraint.
@@ -223,6 +225,13 @@ def settings_schema(cls: type, *, partial: bool = False) -> dict:
         spec = f.metadata.get("setting")
         if spec is None:
             raise TypeError(f"{_name(cls)}.{f.name} states no constraint (dswm.config.setting)")
+        if spec.kind == GIVEN:
+            continue
+        if spec.kind == FLAT:
+            inner = settings_schema(hints[f.name], partial=partial)
+            props.update(inner["properties"])
+            required.extend(inner.get("required", []))
+            continue
         if spec.ref is not None:
             prop = {"$ref": f"#/$defs/{spec.ref}"}
         elif spec.kind == SECTION:
@@ -235,8 +244,7 @@ def settings_schema(cls: type, *, partial: bool = False) -> dict:
         if f.name in docs:
             prop["title"] = docs[f.name]
         props[f.name] = prop
-        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            required.append(f.name)
+        required.append(f.name)
     block: dict[str, Any] = {"type": "object", "additionalProperties": False,
                              "description": f"a mapping of the settings of {_name(cls)}",
                              "x-settings-class": _name(cls), "properties": props}

@@ -48,6 +48,15 @@ ENUM = "enum"
 """The constraint of a ``Literal`` field: one of its values (the schema's ``enum``)."""
 SECTION = "section"
 """The constraint of a nested settings dataclass: its own fields' constraints."""
+FLAT = "flat"
+"""A nested settings dataclass whose keys sit in the section itself, beside the other fields' (``dswm.world_model``
+holds the RSSM's keys): its own fields' constraints; the section's builder makes it from those keys and passes it to
+:func:`build` (``WorldModelConfig.from_flat``)."""
+GIVEN = "given"
+"""A field the caller passes to :func:`build` (``**fixed``), not a key of the section (DSWM's planner gets the one
+``search``)."""
+SPECIAL = (ENUM, SECTION, FLAT, GIVEN)
+"""The constraints that are not a name of :data:`KINDS`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +64,7 @@ class Setting:
     """What :func:`setting` records in a field's metadata (key ``"setting"``)."""
 
     kind: str | None = None
-    """A name of :data:`KINDS`, :data:`ENUM` or :data:`SECTION`; None with ``schema`` or ``ref``."""
+    """A name of :data:`KINDS` or of :data:`SPECIAL`; None with ``schema`` or ``ref``."""
     schema: Mapping[str, Any] | None = None
     """A JSON-schema fragment of this field alone, with its ``description`` (the expected form)."""
     ref: str | None = None
@@ -63,18 +72,20 @@ class Setting:
     dataclass; ``"search"``: :class:`dswm.methods.search.SearchSettings`)."""
 
 
-def setting(kind: str | None = None, *, schema: Mapping[str, Any] | None = None, ref: str | None = None) -> Any:
-    """A dataclass field (no default) whose value has the constraint ``kind`` (a name of :data:`KINDS`, :data:`ENUM`
-    for a ``Literal``, :data:`SECTION` for a nested settings dataclass), the JSON-schema fragment ``schema`` (with its
-    ``description``), or is a nested section described by the config schema's ``$defs/<ref>``. The field's docstring
-    is its meaning."""
+def setting(kind: str | None = None, *, schema: Mapping[str, Any] | None = None, ref: str | None = None,
+            default: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field whose value has the constraint ``kind`` (a name of :data:`KINDS`, :data:`ENUM` for a
+    ``Literal``, :data:`SECTION` for a nested settings dataclass, :data:`FLAT`, :data:`GIVEN`), the JSON-schema
+    fragment ``schema`` (with its ``description``), or is a nested section described by the config schema's
+    ``$defs/<ref>``; ``default`` for one made in code (config.yaml writes every value, :func:`build` requires it).
+    The field's docstring is its meaning."""
     if sum(x is not None for x in (kind, schema, ref)) != 1:
         raise TypeError("setting(): give exactly one of kind, schema and ref")
-    if kind is not None and kind not in KINDS and kind not in (ENUM, SECTION):
-        raise TypeError(f"setting(): unknown kind {kind!r}; expected one of {sorted(KINDS) + [ENUM, SECTION]}")
+    if kind is not None and kind not in KINDS and kind not in SPECIAL:
+        raise TypeError(f"setting(): unknown kind {kind!r}; expected one of {sorted(KINDS) + list(SPECIAL)}")
     if schema is not None and "description" not in schema:
         raise TypeError("setting(): a schema fragment needs a description (the expected form in messages)")
-    return dataclasses.field(metadata={"setting": Setting(kind=kind, schema=schema, ref=ref)})
+    return dataclasses.field(default=default, metadata={"setting": Setting(kind=kind, schema=schema, ref=ref)})
 
 
 def _bare(tp: Any) -> Any:

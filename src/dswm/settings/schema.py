@@ -8,7 +8,9 @@ passes none (the workflow passes its own).
 The file holds no method's settings: a method's section is a marker ``{x-settings: "package.module:ClassName"}`` naming
 its settings dataclass, and :func:`load_schema` puts the block generated from that class in its place
 (``dswm.config.method_schema``: each field's type, constraint and docstring), with the constraint vocabulary
-(``dswm.config.KINDS``) as the ``$defs`` of those names. Every caller reads the schema through :func:`load_schema`.
+(``dswm.config.KINDS``) as the ``$defs`` of those names. A marker with ``x-form: section`` stands for a section
+without ``budgets`` (``dswm.config.settings_schema``: DSWM's sections, the one ``search``), ``x-form: partial`` for
+some of its keys (an override, a profile's budget). Every caller reads the schema through :func:`load_schema`.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from typing import Any, Iterable, Mapping
 import jsonschema
 import yaml
 
-from dswm.config import KINDS, ConfigError, ConfigSources, lookup, method_schema
+from dswm.config import KINDS, ConfigError, ConfigSources, lookup, method_schema, settings_schema
 
 SCHEMA = Path(__file__).resolve().parents[3] / "workflow" / "schemas" / "config.schema.yaml"
 """The JSON schema of config.yaml, in the workflow beside ``src/``."""
@@ -30,6 +32,11 @@ SCHEMA = Path(__file__).resolve().parents[3] / "workflow" / "schemas" / "config.
 
 SETTINGS_MARKER = "x-settings"
 """The key of a marker ``{x-settings: "package.module:ClassName"}``: the block of the settings dataclass it names."""
+FORM = "x-form"
+"""The optional second key of a marker: which block of the class (:data:`FORMS`)."""
+FORMS = {"method": method_schema, "section": settings_schema,
+         "partial": lambda cls: settings_schema(cls, partial=True)}
+"""A marker's forms: a method's section with ``budgets`` (the default), a section, some keys of a section."""
 
 
 def load_schema(path: str | Path) -> dict:
@@ -53,11 +60,12 @@ def settings_class(target: str, *, source: str = "the schema") -> type:
 
 def complete_schema(schema: Mapping[str, Any], *, source: str = "the schema") -> dict:
     """``schema`` with every marker ``{x-settings: "package.module:ClassName"}`` replaced by the block generated from
-    that settings dataclass (``dswm.config.method_schema``), and ``$defs`` holding ``dswm.config.KINDS``.
+    that settings dataclass (its ``x-form``, :data:`FORMS`; ``dswm.config.method_schema`` by default), and ``$defs``
+    holding ``dswm.config.KINDS``.
 
     Raises:
-        ConfigError: a marker's class cannot be imported, or ``$defs`` defines a name of ``KINDS`` itself (the
-            vocabulary is stated once, in ``prep.typed``).
+        ConfigError: a marker's class cannot be imported, its form is unknown, it holds another key, or ``$defs``
+            defines a name of ``KINDS`` itself (the vocabulary is stated once, in ``prep.typed``).
     """
     out = copy.deepcopy(dict(schema))
     defs = out.setdefault("$defs", {})
@@ -69,9 +77,14 @@ def complete_schema(schema: Mapping[str, Any], *, source: str = "the schema") ->
     def fill(node: Any) -> Any:
         if isinstance(node, Mapping):
             if SETTINGS_MARKER in node:
-                if len(node) != 1:
-                    raise ConfigError(f"{source}: a {SETTINGS_MARKER} marker holds nothing else, found {sorted(node)}")
-                return method_schema(settings_class(node[SETTINGS_MARKER], source=source))
+                if set(node) - {SETTINGS_MARKER, FORM}:
+                    raise ConfigError(f"{source}: a {SETTINGS_MARKER} marker holds nothing but {FORM}, found "
+                                      f"{sorted(node)}")
+                form = node.get(FORM, "method")
+                if form not in FORMS:
+                    raise ConfigError(f"{source}: {SETTINGS_MARKER} {node[SETTINGS_MARKER]!r}: {FORM} must be one of "
+                                      f"{', '.join(FORMS)}; found {form!r}")
+                return FORMS[form](settings_class(node[SETTINGS_MARKER], source=source))
             return {k: fill(v) for k, v in node.items()}
         if isinstance(node, list):
             return [fill(v) for v in node]
