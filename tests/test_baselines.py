@@ -121,7 +121,9 @@ def test_oracle_refuses_a_day_without_its_true_demand(make_scenario):
     oracle = OracleController(name="oracle", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=[0.0]))
     with pytest.raises(ValueError, match="clairvoyant"):
         oracle.reset(ctx(scn, [[0.0, 0.0]]))
-    with pytest.raises(ValueError, match="include 0"):
+    with pytest.raises(ValueError, match=r"^config key search\.bw_logits: expected \[\] \(the demand-proportional "
+                                         r"split\) or a list of bandwidth logits in \[-1, 1\] that includes 0, "
+                                         r"found \[0\.5\]$"):
         OracleController(name="oracle", options=SearchSettings(sweeps=1, lattice=3, refine=0, bw_logits=[0.5]))
 
 

@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import ClassVar
 
 import torch
 
-from dswm.config import ConfigError
+from dswm.config import check_fields, setting
 from dswm.sim.fleet import ACTIVE, FleetState, Geometry, fleet_step
 from dswm.sim.physics import DEMAND_EPS, ServiceParams, served_ratio
 from dswm.sim.scenario import Scenario
@@ -28,25 +29,26 @@ from dswm.sim.scenario import Scenario
 class SearchSettings:
     """Strength of a BCD search (config.yaml ``search``, the one search every BCD of the project runs)."""
 
-    sweeps: int
+    sweeps: int = setting("count")
     """Passes over the UAVs per slot."""
-    lattice: int
-    """Points per axis of the displacement lattice over [-D_max, D_max]^2 (odd)."""
-    refine: int
+    lattice: int = setting(schema={"type": "integer", "minimum": 3, "not": {"multipleOf": 2},
+                                   "description": "an odd integer >= 3"})
+    """Points per axis of the displacement lattice over [-D_max, D_max]^2."""
+    refine: int = setting("natural")
     """Rounds of local refinement after the lattice, each at half the previous spacing."""
-    bw_logits: tuple[float, ...]
+    bw_logits: tuple[float, ...] = setting(schema={
+        "type": "array", "items": {"type": "number", "minimum": -1, "maximum": 1},
+        "anyOf": [{"maxItems": 0}, {"contains": {"const": 0}}],
+        "description": "[] (the demand-proportional split) or a list of bandwidth logits in [-1, 1] that includes 0"})
     """Bandwidth logits searched per UAV in the last sweep; () keeps the demand-proportional split (logit 0)."""
 
+    section: ClassVar[str] = "search"
+    """The config key of the section, for messages (one made in code; a built one names its own key)."""
+
     def __post_init__(self):
-        if self.sweeps < 1 or self.lattice < 3 or self.lattice % 2 == 0 or self.refine < 0:
-            raise ConfigError(f"search settings: expected sweeps >= 1, an odd lattice >= 3 and refine >= 0, found "
-                              f"sweeps={self.sweeps}, lattice={self.lattice}, refine={self.refine}")
-        levels = [float(v) for v in self.bw_logits]
-        if levels and (0.0 not in levels or any(abs(v) > 1 for v in levels)):
-            raise ConfigError(f"search settings: bw_logits must be empty or lie in [-1, 1] and include 0, found "
-                              f"{levels}")
+        check_fields(self, self.section)
         # 0 first, so a tie keeps the demand-proportional split.
-        object.__setattr__(self, "bw_logits", tuple(sorted(levels, key=abs)))
+        object.__setattr__(self, "bw_logits", tuple(sorted((float(v) for v in self.bw_logits), key=abs)))
 
 
 @functools.lru_cache(maxsize=16)

@@ -34,6 +34,7 @@ from typing import Callable, Literal, NamedTuple
 
 import torch
 
+from dswm.config import ENUM, GIVEN, check_fields, setting
 from dswm.sim.scenario import Scenario
 from dswm.methods.collect import lloyd_step
 from dswm.methods.search import SearchSettings
@@ -41,7 +42,6 @@ from dswm.sim.fleet import FleetState, Geometry, available, fleet_step
 from dswm.sim.physics import ServiceParams, service
 from dswm.methods.dswm.rssm import LatentState, map_state
 
-PROPOSALS = ("none", "bcd")
 CONTINUATIONS = ("hold", "lloyd")
 
 
@@ -49,42 +49,47 @@ CONTINUATIONS = ("hold", "lloyd")
 class PlannerConfig:
     """CEM and scoring settings (values and reasons in config.yaml ``dswm.planner``)."""
 
-    horizon: int
+    horizon: int = setting("count")
     """H, imagined slots."""
-    n_samples: int
+    n_samples: int = setting("count")
     """N_cem, candidate sequences per iteration."""
-    n_elites: int
+    n_elites: int = setting("count")
     """N_elite, sequences that refit the sampling distribution."""
-    iterations: int
+    iterations: int = setting("count")
     """I, CEM iterations per slot."""
-    sigma0: float
+    sigma0: float = setting("positive")
     """Initial sampling std of the first step's action coordinates (Algorithm 1: of every step)."""
-    sigma0_later: float | None
+    sigma0_later: float | None = setting(schema={
+        "anyOf": [{"type": "number", "exclusiveMinimum": 0}, {"type": "null"}],
+        "description": "a positive number, or null (the same as sigma0)"})
     """Initial sampling std of the later steps; None: ``sigma0`` (Algorithm 1)."""
-    min_std: float
+    min_std: float = setting("nonnegative")
     """Floor of the refitted std (0: none, as in Algorithm 1)."""
-    gamma: float
+    gamma: float = setting("fraction")
     """Planner discount."""
-    rho: float
+    rho: float = setting("fraction")
     """Anchor mixing coefficient (eq. 18)."""
-    lambda_u: float
+    lambda_u: float = setting("nonnegative")
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
-    warm_start: bool
+    warm_start: bool = setting("flag")
     """Start from the previous slot's mean shifted by one step (else from 0 = hold, proportional split)."""
-    carry_best: bool
+    carry_best: bool = setting("flag")
     """Re-enter the best sequence so far into every iteration's population (and the previous slot's best, shifted,
     with ``warm_start``); off in Algorithm 1, where every iteration samples its whole population."""
-    continuation: Literal["hold", "lloyd"]
+    continuation: Literal["hold", "lloyd"] = setting(ENUM)
     """"hold" or "lloyd": how imagined steps after the first act (see ``ImaginationScorer``)."""
-    proposal: Literal["none", "bcd"]
+    proposal: Literal["none", "bcd"] = setting(ENUM)
     """"none" or "bcd": seed the population with the shared BCD ``search`` on the first imagined map."""
-    search: SearchSettings
+    search: SearchSettings = setting(GIVEN)
     """The project's one BCD search (config.yaml ``search``), run by the "bcd" proposal."""
-    compile: bool
+    compile: bool = setting("flag")
     """Run the imagined steps compiled by ``torch.compile`` (``ImaginationScorer``)."""
-    imagine_scale: float = 1.0
+    imagine_scale: float = setting("positive", default=1.0)
     """s of the do(s) probe: every imagined demand map the planner scores on (and the proposal searches on) is
     multiplied by s at decision time; 1 in every evaluated method. Never a training setting."""
+
+    def __post_init__(self):
+        check_fields(self, "dswm.planner")
 
     @property
     def later_std(self) -> float:

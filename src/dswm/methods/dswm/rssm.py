@@ -13,27 +13,32 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from dswm.config import check_fields, setting
+
 
 @dataclass(frozen=True, kw_only=True)
 class RSSMConfig:
     """Sizes and KL settings of the RSSM (values and reasons in config.yaml ``dswm.world_model``)."""
 
-    deter: int
+    deter: int = setting("count")
     """Size of the GRU state h."""
-    stoch: int
+    stoch: int = setting("count")
     """Size of the diagonal-Gaussian state z."""
-    hidden: int
+    hidden: int = setting("count")
     """Width of the prior/posterior MLPs and of the GRU input layer."""
-    embed: int
+    embed: int = setting("count")
     """Size of the observation embedding e_psi(o_t)."""
-    min_std: float
+    min_std: float = setting("positive")
     """Lower bound of the Gaussian std, keeps the KL finite."""
-    free_bits: float
+    free_bits: float = setting("nonnegative")
     """Per-dimension KL floor in nats (eq. 12)."""
-    kl_dyn: float
+    kl_dyn: float = setting("nonnegative")
     """Weight of KL(sg[q] || p): trains the prior."""
-    kl_rep: float
+    kl_rep: float = setting("nonnegative")
     """Weight of KL(q || sg[p]): trains the posterior."""
+
+    def __post_init__(self):
+        check_fields(self, "dswm.world_model")
 
 
 class LatentState(NamedTuple):

@@ -11,11 +11,25 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping
 
-from dswm.config import ConfigError, build, merge, with_budget
+from dswm.config import ConfigError, build, merge, setting, with_budget
 from dswm.methods.dswm.planner import PlannerConfig
 from dswm.methods.search import SearchSettings
 from dswm.methods.dswm.training import TrainConfig
 from dswm.methods.dswm.world_model import WorldModelConfig
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DSWMBudget:
+    """What a profile sets of DSWM (config.yaml ``dswm.budgets.<profile>``): the training budget, and the planner
+    keys it reduces (merged over ``dswm.planner``, before the method's overrides)."""
+
+    transitions: int = setting("count")
+    """Pre-collected training transitions."""
+    steps: int = setting("count")
+    """Gradient steps."""
+    planner: dict[str, Any] = setting(ref="dswm_planner_partial")
+    """Some keys of ``dswm.planner`` (the schema's ``$defs/dswm_planner_partial``; checked as the merged planner)."""
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DSWMSettings:
@@ -26,6 +40,7 @@ class DSWMSettings:
     world_model: WorldModelConfig
     """config.yaml ``dswm.world_model`` (its RSSM keys under ``rssm``)."""
     training: TrainConfig
+    """config.yaml ``dswm.training`` (optimization and pre-collection)."""
     transitions: int
     """Pre-collected training transitions (``dswm.budgets.<profile>.transitions``)."""
     steps: int
@@ -49,6 +64,7 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
     if method not in dswm["methods"]:
         raise ConfigError(f"config.yaml: key 'dswm.methods' has no entry {method!r} (found {sorted(dswm['methods'])})")
     budgeted, _ = with_budget(dswm, profile, "dswm", required=True)  # transitions, steps and planner reductions
+    budget = build(DSWMBudget, dswm["budgets"][profile], f"dswm.budgets.{profile}")
     over = dswm["methods"].get(method) or {}
     planner = build(PlannerConfig, merge(budgeted["planner"], over.get("planner")),
                     "dswm.planner", search=build(SearchSettings, search, "search"))
@@ -61,4 +77,4 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
         world_model=WorldModelConfig.from_flat(merge(dswm["world_model"], over.get("world_model")),
                                                "dswm.world_model"),
         training=build(TrainConfig, merge(dswm["training"], over.get("training")), "dswm.training"),
-        transitions=int(budgeted["transitions"]), steps=int(budgeted["steps"]), planner=planner)
+        transitions=budget.transitions, steps=budget.steps, planner=planner)

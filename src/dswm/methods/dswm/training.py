@@ -20,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from prep.atomic import atomic_path
+from dswm.config import setting
 from dswm.methods.collect import CollectSettings
 from dswm.methods.dswm.world_model import WorldModel
 from dswm.methods.replay import SequenceReplay
@@ -34,17 +35,17 @@ class TrainConfig(CollectSettings):
 
     section: ClassVar[str] = "dswm.training"
 
-    lr: float
+    lr: float = setting("positive")
     """Adam's learning rate."""
-    batch: int
+    batch: int = setting("count")
     """Sequences per gradient step."""
-    seq_len: int
+    seq_len: int = setting("count")
     """Decisions per replayed sequence."""
-    grad_clip: float
+    grad_clip: float = setting("positive")
     """Global gradient-norm clip."""
-    log_points: int
+    log_points: int = setting("count")
     """Number of points of the loss history (averages over equal windows of steps)."""
-    checkpoint_every: int
+    checkpoint_every: int = setting("count")
     """Gradient steps between checkpoints (the last step always writes one)."""
 
 

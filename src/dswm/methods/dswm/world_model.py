@@ -15,19 +15,18 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from dswm.config import build
+from dswm.config import ENUM, FLAT, build, check_fields, setting
 from dswm.sim.physics import ServiceParams, associate, served_ratio, service
 from dswm.methods.dswm.rssm import RSSM, LatentState, RSSMConfig, map_state
 from dswm.methods.dswm.modules import (DemandEnsemble, ObsEncoder, SRHead, ema_update, mlp, symlog,
                              variance_margin)
 
-SERVICE_HEADS = ("physics", "mlp")
 DEMAND_FLOOR = 1e-4
 """Predicted demand below this (normalized units; the training p99 is 1) is set to exactly 0: the service
 physics then treats the cell as empty, and the bandwidth weight x^tau keeps a finite gradient."""
@@ -49,27 +48,37 @@ def to_demand(pred: torch.Tensor) -> torch.Tensor:
 class WorldModelConfig:
     """World-model sizes and loss weights (values and reasons in config.yaml ``dswm.world_model``)."""
 
-    rssm: RSSMConfig
-    ensemble: int
+    rssm: RSSMConfig = setting(FLAT)
+    """The RSSM's sizes and KL settings, whose keys sit in ``dswm.world_model`` itself (:meth:`from_flat`)."""
+    ensemble: int = setting("count")
     """E, demand heads."""
-    demand_hidden: int
+    demand_hidden: int = setting("count")
     """Hidden width of each demand head."""
-    demand_rank: int
+    demand_rank: int = setting("count")
     """Rank of each head's low-rank map decoder."""
-    enc_channels: int
+    enc_channels: int = setting("count")
     """Conv channels of the encoder's first layer."""
-    head_hidden: int
+    head_hidden: int = setting("count")
     """Width of the latent predictor g and of the SR-MLP head."""
-    ema_nu: float
+    ema_nu: float = setting("fraction")
     """nu, EMA coefficient of the teacher."""
-    lambda_var: float
-    m_var: float
-    beta_kl: float
-    lambda_lpr: float
-    lambda_cal: float
-    lambda_serve: float
-    service_head: str
+    lambda_var: float = setting("nonnegative")
+    """lambda_var, weight of the LPR variance margin."""
+    m_var: float = setting("nonnegative")
+    """m_var, the margin the per-dimension std of the GRU state h is kept above."""
+    beta_kl: float = setting("nonnegative")
+    """beta_KL, weight of the KL term L_KL."""
+    lambda_lpr: float = setting("nonnegative")
+    """lambda_L, weight of the latent-prediction term L_LPR."""
+    lambda_cal: float = setting("nonnegative")
+    """lambda_cal, weight of the ensemble calibration term L_cal."""
+    lambda_serve: float = setting("nonnegative")
+    """lambda_serve, weight of the service term L_serve."""
+    service_head: Literal["physics", "mlp"] = setting(ENUM)
     """"physics" (decomposed head, eq. 16) or "mlp" (the dswm_wo_dec ablation)."""
+
+    def __post_init__(self):
+        check_fields(self, "dswm.world_model")
 
     @classmethod
     def from_flat(cls, section: Mapping[str, Any], where: str) -> "WorldModelConfig":
@@ -85,9 +94,6 @@ class WorldModel(nn.Module):
     def __init__(self, *, cfg: WorldModelConfig, rows: int, cols: int, n_uavs: int, window: int,
                  cells: torch.Tensor, params: ServiceParams):
         super().__init__()
-        if cfg.service_head not in SERVICE_HEADS:
-            raise ValueError(f"dswm.world_model.service_head: expected one of {SERVICE_HEADS}, "
-                             f"found {cfg.service_head!r}")
         self.cfg, self.params = cfg, params
         self.rows, self.cols, self.n_uavs = rows, cols, n_uavs
         r = cfg.rssm
