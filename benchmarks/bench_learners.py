@@ -24,7 +24,9 @@ the selected profile (``--profile``, default ``paper``), resolved by the setting
   (``_decisions.time_decisions``, as ``bench_methods.py``).
 
 Every figure is a warm-up, then the median of at least 5 repeats with min and max. ``--quick`` times the fewest
-units (1 warm-up, 5 repeats of one unit, 5 planned slots): a check that every probe runs, not a benchmark.
+units (1 warm-up, 5 repeats of one unit, 5 planned slots): a check that every probe runs, not a benchmark. The
+counts are sized to keep a run under ~15 min on an idle core (GA-MATR's rounds and EMORL-TCTO's tasks are the
+longest units); ``--baseline`` doubles it.
 
 ``--baseline REV``: a git worktree of REV is made under a temporary directory and removed at the end; every item
 is measured in both trees in the same run, alternating which goes first, and the JSON holds both and the speed-up
@@ -66,7 +68,8 @@ def counts(quick: bool):
 
     if quick:
         return {"rounds": Counts(1, 5), "steps": Counts(1, 5), "play": Counts(1, 5), "env_repeats": 5, "slots": 5}
-    return {"rounds": Counts(2, 5), "steps": Counts(3, 5, 4), "play": Counts(2, 5, 2), "env_repeats": 5,
+    # a round of GA-MATR or a task of EMORL-TCTO at paper size is the longest unit: the fewest of those
+    return {"rounds": Counts(1, 5), "steps": Counts(3, 5, 4), "play": Counts(2, 5, 2), "env_repeats": 5,
             "slots": 12}
 
 
