@@ -263,6 +263,8 @@ def main() -> None:
 
     config = load_yaml(ROOT / "config.yaml")
     rates = json.loads(args.rates.read_text())
+    args.rates = args.rates.resolve()
+    shown = args.rates.relative_to(ROOT) if args.rates.is_relative_to(ROOT) else args.rates
     if rates.get("profile") != "paper":
         raise SystemExit(f"{args.rates}: rates measured under profile {rates.get('profile')!r}, expected 'paper'")
     settings = runconfig.resolve({**config, "profile": "paper"})
@@ -274,8 +276,9 @@ def main() -> None:
                    measured=measured_lookup(root, scale=scale),
                    tdmpc_parallel=settings.methods["tdmpc"].options.parallel)
     machine = rates.get("machine", {})
-    notes = [f"rates: {args.rates} (quick: {rates.get('quick')}, 1-min load {machine.get('load_avg_1min')} on "
-             f"{machine.get('cpus')} CPUs when written; code {rates['trees']['current']['rev'][:12]})",
+    load = machine.get("load_avg_1min", float("nan"))
+    notes = [f"rates: {shown} (quick: {rates.get('quick')}, 1-min load {load:.1f} on {machine.get('cpus')} CPUs "
+             f"when written; code {rates['trees']['current']['rev'][:12]})",
              f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`",
              f"test days per evaluation: {days}; other jobs: {root or 'no measured run'} (evaluations x paper days /"
              f" {args.measured_profile} days), else {DEFAULT_S:.0f} s",
