@@ -245,7 +245,7 @@ def report(rows: Mapping, *, notes: list[str]) -> str:
             total[c] += sub[c]
     lines += ["", *notes, f"range (fastest-slowest repeat of every rate): {total['max']:.1f}-{total['min']:.1f} "
               f"core-hours", f"total: {total['median']:.1f} core-hours"]
-    return "\n".join(lines)
+    return "\n".join(line.rstrip() for line in lines)
 
 
 def main() -> None:
