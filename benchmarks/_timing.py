@@ -7,7 +7,7 @@ import platform
 import statistics
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -53,10 +53,24 @@ def machine() -> dict:
 
 def write(name: str, payload: dict) -> Path:
     """Write ``benchmarks/results/<name>.json`` atomically and print it."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"{name}.json"
+    path = write_to(RESULTS / f"{name}.json", payload)
+    print(json.dumps(payload, indent=2))
+    return path
+
+
+def write_to(path: Path, payload: dict) -> Path:
+    """Write ``payload`` with :func:`machine` to the JSON file ``path`` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps({**payload, "machine": machine()}, indent=2) + "\n")
     os.replace(tmp, path)
-    print(json.dumps(payload, indent=2))
     return path
+
+
+def spread(times: Sequence[float], *, warmup: int) -> dict:
+    """The summary :func:`timed` gives, of repeat times measured elsewhere (e.g. the units of a training loop)."""
+    if len(times) < 5:
+        raise ValueError(f"repeats: expected at least 5, found {len(times)}")
+    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times), "repeats": len(times),
+            "warmup": warmup}

@@ -23,78 +23,18 @@ from __future__ import annotations
 
 import argparse
 import copy
-import dataclasses
 import math
-import statistics
-import time
 from pathlib import Path
 
-import numpy as np
 import torch
 import yaml
 
+from _decisions import first_test_day, planning_controller, scenario_for, time_decisions
 from _timing import write
 from dswm import settings as runconfig
-from dswm.methods.base import DayContext
 from dswm.sim.core import core_from_tensor
-from dswm.sim.scenario import DEMO_INTENSITY
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _scenario(settings: runconfig.Settings):
-    """The configured scenario; u from the calibrate record when there is one, else the demo's stand-in."""
-    record = ROOT / runconfig.CALIBRATION_RECORD
-    if settings.scenario.calibrates:
-        if record.is_file():
-            return runconfig.calibrated_scenario(settings.scenario, record), str(record.relative_to(ROOT))
-        return dataclasses.replace(settings.scenario, demand_intensity=DEMO_INTENSITY), "DEMO_INTENSITY stand-in"
-    return settings.scenario, "config.yaml"
-
-
-def _controller(settings: runconfig.Settings, method: str, core, **options):
-    m = settings.methods[method]
-    opts = dataclasses.replace(m.options, **options) if options else m.options
-    ctl = m.controller_class(name=method, seed=0, device="cpu", options=opts)
-    if m.learns:  # untrained weights: planning costs the same
-        ctl.model = ctl._build_model(core.grid, core.scenario)
-        ctl.model.set_normalizer(torch.as_tensor(core.demand[:1].cpu().numpy()))
-        ctl.model.eval()
-    return ctl
-
-
-def _time(ctl, tensor, scenario, day: int, start: int, slots: int) -> dict:
-    """Median, p90 and spread of per-decision ms over ``slots`` decisions from ``start`` (the first apart)."""
-    core = core_from_tensor(tensor, scenario, [day])
-    grid = core.grid
-    ctx = DayContext(dataset=tensor.meta["dataset"], day=day, label=tensor.labels[day], split="id", grid=grid,
-                     scenario=scenario, geometry=grid.geometry(), cells=grid.cells(), init_pos=core.init_pos.numpy(),
-                     device="cpu", demand=tensor.demand[day] if ctl.clairvoyant else None)
-    obs = core.reset([0])
-    if ctl.batched:
-        ctl.reset_batch([ctx])
-    else:
-        ctl.reset(ctx)
-    hold = np.zeros((1, scenario.n_uavs, 3), dtype=np.float32)
-    for _ in range(start):
-        obs = core.step(hold).obs
-    times, served = [], []
-    for _ in range(slots + 1):
-        t0 = time.perf_counter()
-        action = ctl.act_batch(obs) if ctl.batched else ctl.act({k: v[0] for k, v in obs.items()})[None]
-        times.append(1e3 * (time.perf_counter() - t0))
-        out = core.step(action)
-        obs = out.obs
-        served.append(float(np.asarray(out.sr).mean()))
-    first, times = times[0], times[1:]
-    out = {"median_ms": round(statistics.median(times), 1), "p90_ms": round(float(np.percentile(times, 90)), 1),
-           "min_ms": round(min(times), 1), "max_ms": round(max(times), 1), "first_slot_ms": round(first, 1),
-           "served_ratio_mean": round(statistics.mean(served), 4)}
-    if hasattr(ctl, "day_stats"):
-        stats = ctl.day_stats()
-        if stats and stats[0]:
-            out["day_stats"] = {k: round(v, 2) for k, v in stats[0].items()}
-    return out
 
 
 def main() -> None:
@@ -114,7 +54,7 @@ def main() -> None:
                          f"e.g. `snakemake --cores 2 {args.tensor}/meta.json`")
     tensor = load(tensor_dir)
     if args.day == "test":
-        day = next(d["index"] for d in tensor.meta["days"] if d["split"] == "test")
+        day = first_test_day(tensor)
     else:
         day = int(args.day)
     config = yaml.safe_load((ROOT / "config.yaml").read_text())
@@ -123,7 +63,7 @@ def main() -> None:
     config["methods"].pop("only_on", None)
     demo = runconfig.resolve({**copy.deepcopy(config), "profile": "demo"})
     paper = runconfig.resolve({**copy.deepcopy(config), "profile": "paper"})
-    scenario, source = _scenario(demo)
+    scenario, source = scenario_for(demo, ROOT / runconfig.CALIBRATION_RECORD, ROOT)
     print(f"timing day {tensor.labels[day]} of {args.tensor}, slots {args.start_slot}..{args.start_slot + args.slots}"
           f", u from {source}")
     load0 = __import__("os").getloadavg()[0]
@@ -137,8 +77,8 @@ def main() -> None:
     }
     per_method = {}
     for name, (settings, method, over) in runs.items():
-        ctl = _controller(settings, method, core_from_tensor(tensor, scenario, [day]), **over)
-        per_method[name] = _time(ctl, tensor, scenario, day, args.start_slot, args.slots)
+        ctl = planning_controller(settings, method, core_from_tensor(tensor, scenario, [day]), **over)
+        per_method[name] = time_decisions(ctl, tensor, scenario, day, args.start_slot, args.slots)
         print(f"{name:34s} median {per_method[name]['median_ms']:9.1f} ms per decision", flush=True)
     ref = per_method["jtoratc (full solve)"]["median_ms"]
     ratios = {f"jtoratc full solve / {name}": round(ref / r["median_ms"], 2)

@@ -1,0 +1,291 @@
+"""Projected core-hours of the paper profile, from measured rates and the DAG's job list.
+
+Run: python benchmarks/project_paper.py [--rates benchmarks/results/learners_cpu_t1.json] [--target tables]
+         [--measured results/benchmarks --measured-profile demo]
+Prints one row per rule and method (jobs, core-hours at the median rates, and at the fastest and the slowest
+repeat), a subtotal per rule, the assumptions, and last a line ``total: N core-hours``.
+
+The job list is the DAG's: ``snakemake -n --forceall --config profile=paper <target>`` in the repository (every job,
+with its rule, wildcards and benchmark file; ``--jobs FILE`` reads a saved dry-run output instead). A job's cost,
+in seconds of one core:
+
+* ``train``: its work at the paper budget (config.yaml under ``paper``, resolved by ``dswm.settings``) over the rate
+  ``bench_learners.py`` measured for that work (its "current" side), summed (:func:`train_work`):
+  - transitions of the training loop / its transitions per second (PPO, SAC, MADDPG, GA-MATR, HRL-TPRA, EMORL-TCTO;
+    EMORL-TCTO's count includes its policies' measurement days, as its manifest does);
+  - uniform random transitions before learning (SAC's learning_starts, MADDPG's warmup) / the environment's rate at
+    that batch (``environment``: the ceiling, no learner work in them);
+  - pre-collected transitions / the pre-collection rate, gradient steps / gradient steps per second (DSWM's world
+    model: dswm and dswm_wo_dec train one each; TD-MPC's seed phase);
+  - TD-MPC's own transitions / its MPPI episodes' rate, plus their gradient steps (one per transition) at its rate.
+* ``evaluate``: DSWM's planners (dswm, its ablations, DSWM+, its probe, the perfect forecast): test days x 143
+  decisions x DSWM's plan ms per decision (Algorithm 1 at the paper's N/I/H/K; DSWM+'s proposal and warm start are
+  not timed apart); JTORATC: the same decisions x its full-solve ms (at the paper's 8 s budget every slot is a full
+  solve); TD-MPC: 143 slots x the time of one MPPI step of its ``parallel`` training days (the evaluated days, at
+  most that many, are planned as one batch).
+* everything else (the other evaluations, prepare, calibrate, eda, audit, tables): the seconds (``s``) of the same
+  job's benchmark file in ``--measured`` (a finished run's ``results/benchmarks``; another seed's when that seed did
+  not run there), evaluations scaled by the paper's test days over the days that run evaluated
+  (``--measured-profile``); a job with no measured file counts :data:`DEFAULT_S` seconds.
+
+One job holds one core (as the workflow runs them); core-hours are the sum over jobs. The rates are one machine's
+(its load is in the rates file); the range is that of the rates' repeats, not of the machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Iterable, Mapping, NamedTuple
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+DAY = 143
+"""Decisions (transitions) per day-episode."""
+DEFAULT_S = 60.0
+"""Seconds counted for a job without a measured benchmark file (readers and writers of result files)."""
+PLANNERS = ("dswm", "dswm_wo_unc", "dswm_wo_dec", "dswm_plus", "dswm_plus_persist", "perfect")
+"""Evaluations whose cost is DSWM's plan per decision."""
+WORLD_MODELS = ("dswm", "dswm_wo_dec")
+"""Train jobs of DSWM's world model."""
+CASES = ("median", "max", "min")
+"""Which rate of each measurement: the median, the fastest repeat (least core-hours) and the slowest (most)."""
+
+
+class Job(NamedTuple):
+    rule: str
+    wildcards: dict
+    benchmark: str | None
+
+
+# ---- the job list ------------------------------------------------------------------------------------------
+def parse_dryrun(text: str) -> list[Job]:
+    """The jobs of a ``snakemake -n`` output: rule, wildcards and benchmark file of every job block."""
+    jobs, rule, wildcards, bench = [], None, {}, None
+    for line in text.splitlines():
+        m = re.match(r"^(?:local)?rule (\w+):$", line.strip()) if not line.startswith("    ") else None
+        if m:
+            if rule is not None:
+                jobs.append(Job(rule, wildcards, bench))
+            rule, wildcards, bench = m.group(1), {}, None
+        elif rule is not None and line.startswith("    wildcards:"):
+            wildcards = dict(part.strip().split("=", 1) for part in line.split(":", 1)[1].split(","))
+        elif rule is not None and line.startswith("    benchmark:"):
+            bench = line.split(":", 1)[1].strip()
+        elif rule is not None and (line.startswith("Job stats") or line.startswith("Shell command")):
+            jobs.append(Job(rule, wildcards, bench))
+            rule = None
+    if rule is not None:
+        jobs.append(Job(rule, wildcards, bench))
+    return jobs
+
+
+def dag_jobs(target: str) -> list[Job]:
+    """The paper profile's jobs of ``target``: a dry run of every job (``--forceall``) in the repository."""
+    exe = Path(sys.executable).parent / "snakemake"
+    cmd = [str(exe), "-n", "--forceall", "--config", "profile=paper", "--", target]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"project_paper: `{' '.join(cmd)}` failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
+    jobs = parse_dryrun(proc.stdout + proc.stderr)
+    if not jobs:
+        raise SystemExit(f"project_paper: `{' '.join(cmd)}` listed no job")
+    return jobs
+
+
+# ---- the paper budgets -------------------------------------------------------------------------------------
+def train_work(settings) -> dict[str, dict[str, float]]:
+    """{learner: {rate key: work}} of one train job at the paper budget; a rate key names the measured rate that
+    consumes the work: ``<learner phase>.<rate>`` of ``bench_learners.py`` or ``environment.<batch>``."""
+    m = {name: s.options for name, s in settings.methods.items()}
+    ppo, sac, mad, ga, hrl, em, td = (m[k] for k in ("ppo", "sac", "maddpg", "ga_matr", "hrl_tpra", "emorl_tcto",
+                                                       "tdmpc"))
+    wm = m["dswm"]
+    em_rounds = em.n_population * (em.warmup_rounds + em.generations * em.task_rounds)
+    em_measured = (em.n_population + em.n_population * (1 + em.generations)) * em.eval_days
+    return {
+        "ppo": {"train.transitions_per_second": ppo.day_episodes * DAY},
+        "sac": {f"environment.{sac.n_envs}": sac.learning_starts,
+                "train.transitions_per_second": sac.day_episodes * DAY - sac.learning_starts},
+        "maddpg": {"environment.1": mad.warmup, "train.transitions_per_second": mad.transitions - mad.warmup},
+        "ga_matr": {"train.transitions_per_second": ga.transitions},
+        "hrl_tpra": {"train.transitions_per_second": hrl.day_episodes * DAY},
+        "emorl_tcto": {"train.transitions_per_second": (em_rounds * em.n_envs + em_measured) * DAY},
+        "tdmpc": {"collect.transitions_per_second": td.precollect.transitions,
+                  "gradient.gradient_steps_per_second": td.steps,
+                  "play.transitions_per_second": td.episodes * DAY},
+        "dswm_world_model": {"collect.transitions_per_second": wm.transitions,
+                             "gradient.gradient_steps_per_second": wm.steps},
+    }
+
+
+def eval_days(config: Mapping) -> dict[str, int]:
+    """{dataset: test days an evaluation job plans} under the paper profile (every configured ID and OOD day)."""
+    out = {}
+    for ds in config["profiles"]["paper"]["datasets"]:
+        spec = config["datasets"][ds]["eval_days"]
+        out[ds] = sum(len(s["values"]) if s["rule"] == "test_positions" else s["count"] for s in spec.values())
+    return out
+
+
+def day_limit(config: Mapping, profile: str, dataset: str) -> int:
+    """Test days an evaluation job of ``profile`` plans on ``dataset`` (its eval_days limits, else every day)."""
+    spec = config["datasets"][dataset]["eval_days"]
+    limits = config["profiles"][profile]["eval_days"]
+    days = 0
+    for split, s in spec.items():
+        n = len(s["values"]) if s["rule"] == "test_positions" else s["count"]
+        days += n if limits.get(split) is None else min(n, limits[split])
+    return days
+
+
+# ---- the rates ---------------------------------------------------------------------------------------------
+def rate(rates: Mapping, learner: str, key: str, case: str) -> float:
+    """The measured rate ``key`` of ``learner`` (``environment.<batch>``: the environment's) at ``case``."""
+    if key.startswith("environment."):
+        node = rates["environment"]["current"]["batches"][key.split(".", 1)[1]]["fleet_slots_per_second"]
+    else:
+        phase, name = key.split(".", 1)
+        node = rates["learners"][learner]["current"][phase][name]
+    return float(node[case])
+
+
+def plan_ms(rates: Mapping, which: str, case: str) -> float:
+    """DSWM's ("dswm") or JTORATC's full solve ("jtoratc_full_solve") ms per decision at ``case``."""
+    r = rates["planners"]["current"][which]
+    return float(r["median_ms"] if case == "median" else r["min_ms"] if case == "max" else r["max_ms"])
+
+
+# ---- the projection ----------------------------------------------------------------------------------------
+def train_seconds(work: Mapping[str, float], rates: Mapping, learner: str, case: str) -> float:
+    return sum(w / rate(rates, learner, key, case) for key, w in work.items() if w)
+
+
+def job_seconds(job: Job, *, rates, work, days, measured, tdmpc_parallel: int, case: str) -> tuple[float, str]:
+    """(seconds, how) of one job at ``case``."""
+    w = job.wildcards
+    method = w.get("method")
+    if job.rule == "train" and method in WORLD_MODELS:
+        return train_seconds(work["dswm_world_model"], rates, "dswm_world_model", case), "measured rates"
+    if job.rule == "train" and method in work:
+        return train_seconds(work[method], rates, method, case), "measured rates"
+    if job.rule == "evaluate" and method in PLANNERS:
+        return days[w["dataset"]] * DAY * plan_ms(rates, "dswm", case) / 1e3, "DSWM plan ms"
+    if job.rule == "evaluate" and method == "jtoratc":
+        return days[w["dataset"]] * DAY * plan_ms(rates, "jtoratc_full_solve", case) / 1e3, "JTORATC solve ms"
+    if job.rule == "evaluate" and method == "tdmpc":
+        slot_s = tdmpc_parallel / rate(rates, "tdmpc", "play.transitions_per_second", case)
+        return DAY * slot_s, "TD-MPC MPPI step"
+    found = measured(job)
+    if found is not None:
+        return found, "benchmark file"
+    return DEFAULT_S, "default"
+
+
+def measured_lookup(root: Path | None, *, scale: Mapping[str, float]):
+    """A function job -> seconds from the benchmark files under ``root`` (the job's own, else the median over the
+    same path with any seed), evaluations x ``scale[dataset]``; None where nothing was measured."""
+    def lookup(job: Job) -> float | None:
+        if root is None or job.benchmark is None:
+            return None
+        rel = Path(job.benchmark).relative_to("results/benchmarks") if job.benchmark.startswith("results/") \
+            else Path(job.benchmark)
+        paths = [root / rel] if (root / rel).is_file() else sorted(root.glob(re.sub(r"seed\d+", "seed*", str(rel))))
+        values = [read_seconds(p) for p in paths]
+        if not values:
+            return None
+        factor = scale.get(job.wildcards.get("dataset"), 1.0) if job.rule == "evaluate" else 1.0
+        return statistics.median(values) * factor
+
+    return lookup
+
+
+def read_seconds(path: Path) -> float:
+    """The ``s`` column of a Snakemake benchmark file (its first row)."""
+    head, row = path.read_text().splitlines()[:2]
+    return float(dict(zip(head.split("\t"), row.split("\t")))["s"])
+
+
+def project(jobs: Iterable[Job], *, rates, work, days, measured, tdmpc_parallel: int) -> dict:
+    """{(rule, method or ""): {"jobs", "how", "median"/"max"/"min": core-hours}} over ``jobs``."""
+    rows: dict[tuple[str, str], dict] = defaultdict(lambda: {"jobs": 0, "how": set(), **dict.fromkeys(CASES, 0.0)})
+    for job in jobs:
+        row = rows[(job.rule, job.wildcards.get("method", ""))]
+        row["jobs"] += 1
+        for case in CASES:
+            s, how = job_seconds(job, rates=rates, work=work, days=days, measured=measured,
+                                 tdmpc_parallel=tdmpc_parallel, case=case)
+            row[case] += s / 3600.0
+        row["how"].add(how)
+    return dict(rows)
+
+
+def report(rows: Mapping, *, notes: list[str]) -> str:
+    """The table, the subtotals per rule, the assumptions and last ``total: N core-hours``."""
+    lines = [f"{'rule':14s} {'method':18s} {'jobs':>5s} {'core-h':>9s} {'range':>17s}  how"]
+    by_rule: dict[str, list] = defaultdict(list)
+    for (rule, method), row in rows.items():
+        by_rule[rule].append((method, row))
+    total = dict.fromkeys(CASES, 0.0)
+    for rule in sorted(by_rule, key=lambda r: -sum(x["median"] for _, x in by_rule[r])):
+        sub = dict.fromkeys(CASES, 0.0)
+        for method, row in sorted(by_rule[rule], key=lambda mr: -mr[1]["median"]):
+            lines.append(f"{rule:14s} {method or '-':18s} {row['jobs']:5d} {row['median']:9.2f} "
+                         f"{row['max']:8.2f}-{row['min']:<8.2f}  {', '.join(sorted(row['how']))}")
+            for c in CASES:
+                sub[c] += row[c]
+        lines.append(f"{rule + ' (all)':33s} {sum(r['jobs'] for _, r in by_rule[rule]):5d} {sub['median']:9.2f} "
+                     f"{sub['max']:8.2f}-{sub['min']:<8.2f}")
+        for c in CASES:
+            total[c] += sub[c]
+    lines += ["", *notes, f"range (fastest-slowest repeat of every rate): {total['max']:.1f}-{total['min']:.1f} "
+              f"core-hours", f"total: {total['median']:.1f} core-hours"]
+    return "\n".join(line.rstrip() for line in lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rates", type=Path, default=HERE / "results" / "learners_cpu_t1.json",
+                    help="bench_learners.py's result (its 'current' side)")
+    ap.add_argument("--target", default="tables", help="the Snakemake target whose jobs are projected")
+    ap.add_argument("--jobs", type=Path, help="a saved `snakemake -n --forceall` output instead of running it")
+    ap.add_argument("--measured", type=Path, default=ROOT / "results" / "benchmarks",
+                    help="a finished run's results/benchmarks (the jobs not timed by bench_learners.py)")
+    ap.add_argument("--measured-profile", default="demo", help="the profile of that run (its test days per job)")
+    args = ap.parse_args()
+    from dswm import settings as runconfig
+    from dswm.config import load_yaml
+
+    config = load_yaml(ROOT / "config.yaml")
+    rates = json.loads(args.rates.read_text())
+    args.rates = args.rates.resolve()
+    shown = args.rates.relative_to(ROOT) if args.rates.is_relative_to(ROOT) else args.rates
+    if rates.get("profile") != "paper":
+        raise SystemExit(f"{args.rates}: rates measured under profile {rates.get('profile')!r}, expected 'paper'")
+    settings = runconfig.resolve({**config, "profile": "paper"})
+    jobs = parse_dryrun(args.jobs.read_text()) if args.jobs else dag_jobs(args.target)
+    days = eval_days(config)
+    root = args.measured if args.measured.is_dir() else None
+    scale = {ds: days[ds] / day_limit(config, args.measured_profile, ds) for ds in days}
+    rows = project(jobs, rates=rates, work=train_work(settings), days=days,
+                   measured=measured_lookup(root, scale=scale),
+                   tdmpc_parallel=settings.methods["tdmpc"].options.parallel)
+    machine = rates.get("machine", {})
+    load = machine.get("load_avg_1min", float("nan"))
+    notes = [f"rates: {shown} (quick: {rates.get('quick')}, 1-min load {load:.1f} on {machine.get('cpus')} CPUs "
+             f"when written; code {rates['trees']['current']['rev'][:12]})",
+             f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`",
+             f"test days per evaluation: {days}; other jobs: {root or 'no measured run'} (evaluations x paper days /"
+             f" {args.measured_profile} days), else {DEFAULT_S:.0f} s",
+             "one job = one core; DSWM+'s and the probes' planners cost DSWM's plan; SAC's and MADDPG's random "
+             "transitions at the environment's rate"]
+    print(report(rows, notes=notes))
+
+
+if __name__ == "__main__":
+    main()

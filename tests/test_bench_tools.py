@@ -1,0 +1,154 @@
+"""The benchmark tools: the paper projection's arithmetic on hand-made rates and jobs, the speed-up record of a
+side-by-side run, and (integration) ``bench_learners.py --quick`` on the smoke run's Milan tensor."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import bench_learners  # noqa: E402
+import project_paper as pp  # noqa: E402
+from dswm.config import load_yaml  # noqa: E402
+
+DRYRUN = """\
+[Thu Nov 26 02:16:13 2026]
+rule train:
+    input: results/data/milan/demand.parquet
+    output: results/milan/sac/seed0/model.pt
+    log: logs/train/milan/sac/seed0.log
+    jobid: 7
+    benchmark: results/benchmarks/train/milan/sac/seed0.tsv
+    reason: Forced execution
+    wildcards: dataset=milan, method=sac, seed=0
+    resources: tmpdir=/tmp, runtime=1440
+Shell command: None
+
+[Thu Nov 26 02:16:13 2026]
+localrule tables:
+    input: results/tables/milan_main.csv
+    jobid: 0
+    reason: Forced execution
+    resources: tmpdir=/tmp
+Shell command: None
+Job stats:
+job       count
+------  -------
+tables        1
+train         1
+total         2
+"""
+
+
+def spread(median, slow, fast):
+    """A measured rate: its median, its slowest repeat (min) and its fastest (max)."""
+    return {"median": median, "min": slow, "max": fast}
+
+
+RATES = {
+    "profile": "paper",
+    "environment": {"current": {"batches": {"8": {"fleet_slots_per_second": spread(1000.0, 500.0, 2000.0)}}}},
+    "learners": {
+        "sac": {"current": {"train": {"transitions_per_second": spread(100.0, 50.0, 200.0)}}},
+        "dswm_world_model": {"current": {"collect": {"transitions_per_second": spread(10000.0, 5000.0, 20000.0)},
+                                         "gradient": {"gradient_steps_per_second": spread(10.0, 5.0, 20.0)}}},
+        "tdmpc": {"current": {"play": {"transitions_per_second": spread(20.0, 10.0, 40.0)}}},
+    },
+    "planners": {"current": {"dswm": {"median_ms": 500.0, "min_ms": 400.0, "max_ms": 800.0},
+                             "jtoratc_full_solve": {"median_ms": 1000.0, "min_ms": 900.0, "max_ms": 1500.0}}},
+}
+WORK = {"sac": {"environment.8": 8000, "train.transitions_per_second": 360000},
+        "dswm_world_model": {"collect.transitions_per_second": 60000, "gradient.gradient_steps_per_second": 36000}}
+
+
+def job(rule, dataset=None, method=None, seed=None):
+    w = {k: v for k, v in (("dataset", dataset), ("method", method), ("seed", seed)) if v is not None}
+    bench = None if method is None else f"results/benchmarks/{rule}/{dataset}/{method}/seed{seed}.tsv"
+    return pp.Job(rule, w, bench)
+
+
+def test_the_dry_run_is_read_into_jobs_with_their_wildcards_and_benchmark_files():
+    jobs = pp.parse_dryrun(DRYRUN)
+    assert jobs == [pp.Job("train", {"dataset": "milan", "method": "sac", "seed": "0"},
+                           "results/benchmarks/train/milan/sac/seed0.tsv"),
+                    pp.Job("tables", {}, None)]
+
+
+def test_paper_test_days_per_evaluation_and_the_demo_runs_days():
+    config = load_yaml(ROOT / "config.yaml")
+    assert pp.eval_days(config) == {"milan": 7, "shanghai": 7, "yjmob": 7}
+    assert pp.day_limit(config, "demo", "milan") == 3        # 2 of the 3 ID days, 1 of the 4 OOD days
+    assert pp.day_limit(config, "paper", "yjmob") == 7
+
+
+def test_projection_adds_each_jobs_work_over_its_measured_rate(tmp_path):
+    bench = tmp_path / "benchmarks" / "evaluate" / "milan" / "greedy"
+    bench.mkdir(parents=True)
+    for seed, s in ((0, 30.0), (2, 50.0)):     # greedy's seed 1 did not run there: the median of the others
+        (bench / f"seed{seed}.tsv").write_text(f"s\th:m:s\tmax_rss\n{s}\t0:00:30\t600.0\n")
+    jobs = [job("train", "milan", "sac", 0), job("train", "milan", "dswm", 0), job("train", "milan", "dswm_wo_dec", 1),
+            job("evaluate", "milan", "dswm_plus", 0), job("evaluate", "milan", "jtoratc", 0),
+            job("evaluate", "milan", "tdmpc", 0), job("evaluate", "milan", "greedy", 1), job("prepare")]
+    rows = pp.project(jobs, rates=RATES, work=WORK, days={"milan": 7},
+                      measured=pp.measured_lookup(tmp_path / "benchmarks", scale={"milan": 7 / 3}), tdmpc_parallel=10)
+    h = 3600.0
+    # SAC: 8,000 random transitions at the environment's 1,000/s + 360,000 at its 100/s
+    assert rows[("train", "sac")]["median"] == pytest.approx((8 + 3600) / h)
+    assert rows[("train", "sac")]["max"] == pytest.approx((4 + 1800) / h)      # every rate at its fastest repeat
+    assert rows[("train", "sac")]["min"] == pytest.approx((16 + 7200) / h)
+    # two world models: 60,000 collected at 10,000/s + 36,000 steps at 10/s each
+    assert rows[("train", "dswm")]["median"] == pytest.approx(3606 / h)
+    assert rows[("train", "dswm_wo_dec")]["median"] == pytest.approx(3606 / h)
+    assert rows[("evaluate", "dswm_plus")]["median"] == pytest.approx(7 * 143 * 0.5 / h)
+    assert rows[("evaluate", "jtoratc")]["min"] == pytest.approx(7 * 143 * 1.5 / h)
+    assert rows[("evaluate", "tdmpc")]["median"] == pytest.approx(143 * 10 / 20 / h)
+    assert rows[("evaluate", "greedy")]["median"] == pytest.approx(40 * 7 / 3 / h)
+    assert rows[("prepare", "")]["median"] == pytest.approx(pp.DEFAULT_S / h)
+    assert rows[("evaluate", "greedy")]["how"] == {"benchmark file"}
+    text = pp.report(rows, notes=["a note"])
+    total = (3608 + 2 * 3606 + 500.5 + 1001 + 71.5 + 280 / 3 + 60) / h
+    assert text.splitlines()[-1] == f"total: {total:.1f} core-hours" == "total: 3.5 core-hours"
+    assert "a note" in text
+    assert "train (all)" in text and "evaluate (all)" in text
+
+
+def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
+    base = {"settings_hash": "a", "train": {"transitions_per_second": spread(10.0, 9.0, 11.0),
+                                            "gradient_steps_per_second": spread(5.0, 4.0, 6.0)}}
+    cur = {"settings_hash": "a", "train": {"transitions_per_second": spread(40.0, 30.0, 50.0),
+                                           "gradient_steps_per_second": spread(12.5, 10.0, 14.0)}}
+    sac = bench_learners.compare("sac", cur, base)
+    assert sac["speedup"] == 2.5 and sac["goal_speedup"] == 3.0 and sac["goal_met"] is False
+    assert sac["speedups"] == {"train.transitions_per_second": 4.0, "train.gradient_steps_per_second": 2.5}
+    assert sac["same_settings"] is True
+    ppo = bench_learners.compare("ppo", cur, {**base, "settings_hash": "b"})
+    assert ppo["speedup"] == 4.0 and ppo["goal_speedup"] is None and ppo["goal_met"] is None
+    assert ppo["same_settings"] is False
+    alone = bench_learners.compare("maddpg", cur, None)
+    assert "speedup" not in alone and alone["baseline"] is None
+
+
+@pytest.mark.integration
+def test_quick_benchmark_on_the_smoke_tensor_writes_every_learner(smoke_tables, tmp_path):
+    out = tmp_path / "learners.json"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT)])}
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_learners.py"), "--quick",
+                           "--profile", "smoke", "--tensor", str(smoke_tables / "results" / "data" / "milan"),
+                           "--out", str(out)], env=env, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert set(result["learners"]) == set(bench_learners.LEARNERS) == {
+        "dswm_world_model", "ppo", "sac", "maddpg", "tdmpc", "ga_matr", "hrl_tpra", "emorl_tcto"}
+    for name, entry in result["learners"].items():
+        cur = entry["current"]
+        assert cur["transitions_per_second"]["median"] > 0 and cur["gradient_steps_per_second"]["median"] > 0, name
+        assert cur["threads"] == 1
+    assert result["learners"]["ppo"]["current"]["train"]["seconds_per_repeat"]["repeats"] == 5
+    assert result["planners"]["current"]["dswm"]["decisions"] == 5
+    assert set(result["environment"]["current"]["batches"]) == {"1", "2", "10"}   # the smoke learners' batches
