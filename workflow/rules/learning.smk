@@ -15,19 +15,7 @@ except ConfigError as err:
 LEARNERS = S.learning_methods(SETTINGS, LEARNING)
 LEARNING_REFERENCES = S.learning_references(SETTINGS, LEARNING)
 LEARNING_RUN = "results/learning/{dataset}/{method}/seed{seed}"
-_LEARNING_JOB = {"dataset": LEARNING.dataset, "seed": LEARNING.seed}
 
-
-def learning_snapshots(wildcards):
-    """The snapshots a learning_score job scores: its learner's run's (none for a reference method)."""
-    if wildcards.method not in LEARNERS:
-        return {}
-    return {"snapshots": rules.learning_train.output.snapshots.format(**dict(wildcards.items()))}
-
-
-def learning_files(output, methods):
-    """``output`` (a learning rule's output pattern) of every method of ``methods`` at learning.dataset/seed."""
-    return [output.format(method=m, **_LEARNING_JOB) for m in methods]
 
 
 rule learning_train:
