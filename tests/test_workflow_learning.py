@@ -167,9 +167,11 @@ def test_the_csv_has_a_row_per_snapshot_with_the_references_on_the_same_days():
                                        score_rows("greedy", None, None, None, (0.8,) * 3, days=(6, 7, 8))]))
 
 
-def test_a_learner_whose_transitions_are_all_precollected_is_drawn_against_its_gradient_steps():
-    table = pl.DataFrame({"transitions": [1430, 1430, 1430], "gradient_steps": [0, 20, 40]})
-    assert curve_axis(table) == ("gradient_steps", "gradient steps (log scale; all 1,430 transitions pre-collected)")
+def test_a_learner_whose_snapshots_share_their_transitions_is_drawn_against_its_gradient_steps():
+    table = pl.DataFrame({"fraction": [0.0, 0.25, 0.5, 1.0], "untrained": [True, False, False, False],
+                          "transitions": [1430, 1430, 1430, 1573], "gradient_steps": [0, 10, 20, 40]})
+    assert curve_axis(table) == ("gradient_steps", "gradient steps (log scale; 1,430-1,573 transitions, pre-collected "
+                                                   "ones included)")
 
 
 # ---- the target --------------------------------------------------------------------------------------------------
@@ -204,10 +206,12 @@ def test_the_learning_target_writes_a_curve_per_learner_on_the_validation_days(l
         assert rows["untrained"].to_list() == [True] + [False] * len(learning.ladder), method
         assert set(rows["seed"].to_list()) == {learning.seed}
         transitions, steps = rows["transitions"].to_list(), rows["gradient_steps"].to_list()
-        assert all(b >= a for a, b in zip(transitions, transitions[1:])), (method, transitions)
-        assert all(b > a for a, b in zip(steps, steps[1:])), (method, steps)  # every snapshot a later model
+        points = list(zip(transitions, steps))
+        assert all(b[0] >= a[0] and b[1] >= a[1] and b != a for a, b in zip(points, points[1:])), (method, points)
         if method not in ("dswm", "tdmpc"):  # they train on pre-collected transitions before their first update
             assert all(b > a for a, b in zip(transitions, transitions[1:])), (method, transitions)
+        else:  # ... so every later snapshot is a later gradient step
+            assert all(b > a for a, b in zip(steps, steps[1:])), (method, steps)
         assert steps[0] == 0, method
         assert rows["probe_sr"].is_between(0.0, 1.0).all(), method
     assert set(table["days"].to_list()) == {want_days} and not set(want_days.split(";")) & test_labels

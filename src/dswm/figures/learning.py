@@ -15,6 +15,8 @@ from typing import Iterable, Mapping, Sequence
 
 import polars as pl
 
+from matplotlib.ticker import NullFormatter
+
 from dswm.figures.common import plt, save_figure
 
 RETURN_SERIES = (("rollout/ep_rew_mean", "training return"), ("charts/episode_return", "training return"),
@@ -25,8 +27,9 @@ CSV_COLUMNS = ("method", "seed", "fraction", "transitions", "gradient_steps", "p
                "greedy_sr", "days", "dataset")
 CAPTION = ("Learning curves: served ratio on the validation days {days} ({dataset}; the last training days, held out "
            "of every learning run, never a test day) of one run per learner (seed {seeds}) at its cap, its "
-           "snapshots at fractions {ladder} of the cap and the untrained model (hollow marker, left of the axis "
-           "break), against the environment transitions consumed (log scale; pre-collected ones included); "
+           "snapshots at fractions {ladder} of the cap and the untrained model (hollow marker; at a quarter of the "
+           "first snapshot's x where it consumed none), against the environment transitions consumed (log scale; "
+           "pre-collected ones included; against the gradient steps where snapshots share their transitions); "
            "{refs} on the same days as horizontal lines. Right: the run's training return (DSWM: its world-model "
            "loss) from its loss history. Diagnostic only: never in a table.")
 
@@ -133,6 +136,7 @@ def _draw_curve(ax, rows: pl.DataFrame, title: str) -> None:
         if value.len():
             ax.axhline(float(value[0]), ls=style, color="0.4", lw=1, label=name)
     ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())  # labelled decades only: minor labels overlap on short ranges
     ax.set_xlabel(x_label)
     ax.set_ylabel("validation served ratio")
     ax.set_title(title, fontsize=10)
@@ -141,12 +145,17 @@ def _draw_curve(ax, rows: pl.DataFrame, title: str) -> None:
 
 
 def curve_axis(rows: pl.DataFrame) -> tuple[str, str]:
-    """(column, label) of a learner's x axis: the environment transitions, or, when every snapshot consumed the same
-    transitions (all pre-collected before the first update, as DSWM's world model), its gradient steps."""
-    n = rows["transitions"].n_unique()
-    if n > 1 or rows["gradient_steps"].null_count():
+    """(column, label) of a learner's x axis: the environment transitions when they grow from each snapshot of the
+    ladder to the next, else (snapshots taken on the same pre-collected transitions, as DSWM's world model and
+    TD-MPC's seed phase) its gradient steps."""
+    trained = rows.filter(~pl.col("untrained")).sort("fraction")
+    transitions = trained["transitions"].to_list()
+    if rows["gradient_steps"].null_count() or all(b > a for a, b in zip(transitions, transitions[1:])):
         return "transitions", "environment transitions (log scale)"
-    return "gradient_steps", f"gradient steps (log scale; all {rows['transitions'][0]:,} transitions pre-collected)"
+    low, high = min(transitions), max(transitions)
+    span = (f"all {low:,} transitions pre-collected" if low == high
+            else f"{low:,}-{high:,} transitions, pre-collected ones included")
+    return "gradient_steps", f"gradient steps (log scale; {span})"
 
 
 def _draw_return(ax, history: pl.DataFrame) -> None:
