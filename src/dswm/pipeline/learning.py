@@ -10,6 +10,7 @@
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -97,6 +98,8 @@ def learning_score_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
         for e in entries:
             key = None if e is None else e["sha256"]
             if key not in scored:
+                print(f"learning_score: {method}" + ("" if e is None else f", snapshot at fraction {e['fraction']:g} "
+                      f"of the cap ({e['n_transitions']} transitions)"), file=sys.stderr)
                 ctrl = build_controller(s, method, seed)
                 if e is not None:
                     ctrl.load(e["path"])
