@@ -376,8 +376,8 @@ def test_a_workflow_start_in_a_copy_adopts_the_store_and_says_so(tmp_path, monke
 
 def test_each_kind_of_run_is_tagged_and_the_figures_runs_have_their_own_experiment(store, tmp_path):
     """The tables' runs (kind main) are alone in the configured experiment, which the UI opens on; the extra,
-    probe and world-model quality runs (each tagged with its kind) go to `<experiment>-figures`, which mlflow_init
-    creates and describes beside it."""
+    probe, world-model quality and learning-curve runs (each tagged with its kind) go to `<experiment>-figures`,
+    which mlflow_init creates and describes beside it."""
     cfg, info, client = store
     main = client.get_experiment(info["experiment_id"])
     figures = client.get_experiment_by_name(cfg["experiment"] + "-figures")
@@ -389,16 +389,17 @@ def test_each_kind_of_run_is_tagged_and_the_figures_runs_have_their_own_experime
         f"only are in the experiment '{figures.name}'.")
     assert f"The tables' runs are in the experiment '{main.name}'." in figures.tags["mlflow.note.content"]
     jobs = [("train", "main"), ("evaluate", "main"), ("extra/K8/evaluate", "extra"), ("probe", "probe"),
-            ("wm", "wm_quality")]
+            ("wm", "wm_quality"), ("learning/train", "learning")]
     for stage, kind in jobs:
         with open_job(cfg, tmp_path, stage=stage, kind=kind):
             pass
     where = {e: sorted((r.data.tags["stage"], r.data.tags["kind"]) for r in client.search_runs([e]))
              for e in (main.experiment_id, figures.experiment_id)}
     assert where == {main.experiment_id: [("evaluate", "main"), ("train", "main")],
-                     figures.experiment_id: [("extra/K8/evaluate", "extra"), ("probe", "probe"),
-                                             ("wm", "wm_quality")]}
-    with pytest.raises(ValueError, match="run kind 'figure': expected one of main, extra, probe, wm_quality"):
+                     figures.experiment_id: [("extra/K8/evaluate", "extra"), ("learning/train", "learning"),
+                                             ("probe", "probe"), ("wm", "wm_quality")]}
+    with pytest.raises(ValueError, match="run kind 'figure': expected one of main, extra, probe, wm_quality, "
+                                         "learning"):
         tracking.experiment_of(cfg, "figure")
 
 

@@ -280,3 +280,17 @@ def wm_files(dataset, name):
 def main_run(dataset, method, seed, output="days"):
     """A main evaluation's output file."""
     return getattr(rules.evaluate.output, output).format(dataset=dataset, method=method, seed=seed)
+
+
+# The learning curves (learning.smk): LEARNING, LEARNERS and the learning_* rules are defined there.
+def learning_snapshots(wildcards):
+    """The snapshots a learning_score job scores: its learner's run's (none for a reference method)."""
+    if wildcards.method not in LEARNERS:
+        return {}
+    return {"snapshots": rules.learning_train.output.snapshots.format(**dict(wildcards.items()))}
+
+
+def learning_files(output, methods):
+    """``output`` (a learning rule's output pattern) of every method of ``methods`` at learning.dataset and
+    learning.seed."""
+    return [output.format(dataset=LEARNING.dataset, method=m, seed=LEARNING.seed) for m in methods]

@@ -6,7 +6,10 @@ builds a :class:`Snapshots` (:func:`for_train_job`) and passes it to its control
 The fit loop calls :meth:`Snapshots.claim` with its checkpoint before it looks at it, and :meth:`Snapshots.step`
 after every unit of its budget (a round, a day-episode, a gradient step, a task), before any checkpoint of that
 unit. A fraction f is due at the first unit ``done`` with ``done / total >= f``; the model file written then is
-what the controller's ``save`` writes at that point (a loadable model, the probe's input). Taking a snapshot reads
+what the controller's ``save`` writes at that point (a loadable model, the probe's input). A run that asks for the
+untrained point as well (``untrained``: the learning curves, ``dswm.pipeline.learning``) has its fit loop call
+:meth:`Snapshots.start` once the model is built, before its first update: fraction 0, the model as initialised.
+Each snapshot records the environment transitions and the gradient steps done by then. Taking a snapshot reads
 the training state and changes none of it, so a run trains the same model with and without snapshots.
 
 Snapshots live in the job's run directory (``<run_dir>/snapshots/``, beside the checkpoint, kept across an
@@ -30,7 +33,9 @@ from prep.rawio import sha256_file
 
 INDEX_FILE = "index.json"
 """The snapshot index in a train job's ``snapshots`` output: {"method", "seed", "fractions", "snapshots": [{"fraction",
-"done", "total", "fraction_done", "n_transitions", "file", "sha256"}]}, one entry per requested fraction."""
+"done", "total", "fraction_done", "n_transitions", "gradient_steps", "file", "sha256"}]}, one entry per requested
+fraction (fraction 0 first when the untrained model was asked for; ``gradient_steps`` null where the fit loop does
+not count them)."""
 JOURNAL_FILE = "journal.json"
 """The record of the snapshots taken so far in ``<run_dir>/snapshots/``: {"key", "fractions", "taken": [...]}."""
 STORE = "snapshots"
@@ -67,10 +72,12 @@ class Snapshots:
         fractions: the budget fractions to snapshot (:func:`check_fractions`).
         store: the directory of the snapshot files and the journal (``<run_dir>/snapshots``).
         key: what the run's snapshots depend on (:func:`job_key`); a journal under another key is not continued.
+        untrained: also snapshot the model before its first update (fraction 0, :meth:`start`).
     """
 
-    def __init__(self, *, fractions: Sequence[float], store: str | Path, key: str):
+    def __init__(self, *, fractions: Sequence[float], store: str | Path, key: str, untrained: bool = False):
         self.fractions = check_fractions(fractions)
+        self.untrained = bool(untrained)
         self.store = Path(store)
         self.key = key
         self.taken: dict[float, dict] = {}
@@ -107,35 +114,66 @@ class Snapshots:
         self._write_journal()
         self.matches = True
 
+    def requested(self) -> tuple[float, ...]:
+        """Every fraction this run snapshots, in order: 0 first when :attr:`untrained`."""
+        return ((0.0,) if self.untrained else ()) + self.fractions
+
+    def start(self, *, total: int, n_transitions: int, write: Callable[[Path], None],
+              gradient_steps: int | None = 0) -> list[float]:
+        """Once the model is built, before its first update: the untrained snapshot (fraction 0), when asked for
+        and not yet taken (a resumed run took it before its checkpoint).
+
+        Args:
+            total: units of the budget in all.
+            n_transitions: environment transitions consumed so far (pre-collected ones included).
+            write: writes the model file at the given path (the controller's ``save`` of the initial model).
+            gradient_steps: gradient steps done so far (0 before the first update).
+        Returns:
+            [0.0] when taken now, else [].
+        """
+        if not self.untrained or 0.0 in self.taken:
+            return []
+        return self._take([0.0], done=0, total=total, n_transitions=n_transitions, gradient_steps=gradient_steps,
+                          write=write, name=f"snapshot_untrained_of{total}.pt")
+
     def due(self, done: int, total: int) -> list[float]:
         """The fractions due at unit ``done`` of ``total``: those whose :func:`due_unit` is ``done``."""
         return [f for f in self.fractions if due_unit(f, total) == done]
 
-    def step(self, *, done: int, total: int, n_transitions: int, write: Callable[[Path], None]) -> list[float]:
+    def step(self, *, done: int, total: int, n_transitions: int, write: Callable[[Path], None],
+             gradient_steps: int | None = None) -> list[float]:
         """After unit ``done`` of ``total``: take the snapshot of every fraction due now.
 
         Args:
             done, total: units of the budget done and in all.
             n_transitions: environment transitions consumed so far (pre-collected ones included).
             write: writes the model file at the given path (the controller's ``save`` of the current state).
+            gradient_steps: gradient steps done so far (None: the fit loop does not count them).
         Returns:
             The fractions taken (empty when none is due).
         """
         due = self.due(done, total)
         if not due:
             return []
+        return self._take(due, done=done, total=total, n_transitions=n_transitions, gradient_steps=gradient_steps,
+                          write=write, name=f"snapshot_{done:0{len(str(total))}d}of{total}.pt")
+
+    def _take(self, fractions: list[float], *, done: int, total: int, n_transitions: int,
+              gradient_steps: int | None, write: Callable[[Path], None], name: str) -> list[float]:
+        """Write one snapshot file ``name`` for ``fractions`` and record it in the journal."""
         if not self.matches:
-            raise SnapshotError(f"{self.store}: Snapshots.step before claim(); the fit loop must claim its "
+            raise SnapshotError(f"{self.store}: a snapshot before claim(); the fit loop must claim its "
                                 f"checkpoint first")
         self.store.mkdir(parents=True, exist_ok=True)
-        name = f"snapshot_{done:0{len(str(total))}d}of{total}.pt"
         write(self.store / name)
         digest = sha256_file(self.store / name)
-        for f in due:
+        for f in fractions:
             self.taken[f] = {"fraction": f, "done": int(done), "total": int(total), "fraction_done": done / total,
-                             "n_transitions": int(n_transitions), "file": name, "sha256": digest}
+                             "n_transitions": int(n_transitions),
+                             "gradient_steps": None if gradient_steps is None else int(gradient_steps),
+                             "file": name, "sha256": digest}
         self._write_journal()
-        return due
+        return fractions
 
     def entries(self) -> list[dict]:
         """One entry per fraction, in order, each file checked against its hash.
@@ -144,7 +182,7 @@ class Snapshots:
             SnapshotError: a fraction was never taken, or its file is missing or changed.
         """
         out = []
-        for f in self.fractions:
+        for f in self.requested():
             e = self.taken.get(f)
             if e is None:
                 raise SnapshotError(f"{self.store / JOURNAL_FILE}: no snapshot at fraction {f} of the budget (taken: "
@@ -167,11 +205,12 @@ def job_key(*, job: Mapping[str, Any], method: str, seed: int, data_files: Seque
 def for_train_job(*, job: Mapping[str, Any], method: str, seed: int, run_dir: str | Path,
                   data_files: Sequence[Mapping[str, str]]) -> Snapshots | None:
     """The :class:`Snapshots` a train job passes to ``fit``: None unless its slice holds ``snapshots.fractions``
-    (``dswm.settings.train_slice`` adds it for the probed jobs only)."""
+    (``dswm.settings.train_slice`` adds it for the probed jobs only; the learning runs' slice with ``untrained``:
+    true)."""
     spec = job.get("snapshots")
     if not spec:
         return None
-    return Snapshots(fractions=spec["fractions"], store=Path(run_dir) / STORE,
+    return Snapshots(fractions=spec["fractions"], store=Path(run_dir) / STORE, untrained=bool(spec.get("untrained")),
                      key=job_key(job=job, method=method, seed=seed, data_files=data_files))
 
 
@@ -200,7 +239,7 @@ def export(snapshots: Snapshots | None, out_dir: str | Path, *, method: str, see
                 shutil.copyfile(snapshots.store / name, tmp)
         if sha256_file(out_dir / name) != next(e["sha256"] for e in entries if e["file"] == name):
             raise SnapshotError(f"{out_dir / name}: the copy does not hash to the snapshot taken")
-    index = {"method": method, "seed": int(seed), "fractions": list(snapshots.fractions), "snapshots": entries}
+    index = {"method": method, "seed": int(seed), "fractions": list(snapshots.requested()), "snapshots": entries}
     write_json(out_dir / INDEX_FILE, index)
     return index
 

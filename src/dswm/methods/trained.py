@@ -161,12 +161,15 @@ class TrainedController(Controller):
             del blob
         every = self.settings.checkpoint_every
         done, total = trainer.progress
+        if snapshots is not None:
+            snapshots.start(total=total, n_transitions=trainer.per_day * len(trainer.days_used),
+                            gradient_steps=trainer.learner.steps, write=write_snapshot)
         while done < total:
             trainer.advance()
             done, total = trainer.progress
             if snapshots is not None:
                 snapshots.step(done=done, total=total, n_transitions=trainer.per_day * len(trainer.days_used),
-                               write=write_snapshot)
+                               gradient_steps=trainer.learner.steps, write=write_snapshot)
             if done % every == 0 or done == total:
                 trainer.save(ckpt, key)
         self.use(trainer.learner, train_core.grid, train_core.scenario)

@@ -89,12 +89,12 @@ def train_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], evaluate
 
 
 def fit_on_training_days(run: tracking.JobRun, s: JobSetup, *, tensor, tensor_dir: str | Path, dataset: str,
-                         method: str, seed: int, run_dir: str | Path,
-                         snaps: snapshots.Snapshots | None = None) -> tuple[Controller, dict]:
+                         method: str, seed: int, run_dir: str | Path, snaps: snapshots.Snapshots | None = None,
+                         days: Sequence[int] | None = None) -> tuple[Controller, dict]:
     """What every train job does inside its run before :func:`finish_training`: record the demand tensor as the
     run's input, seed torch with ``seed``, build the controller and ``fit`` it on the TRAINING days
-    (:func:`dswm.pipeline.setup.training_core`), passing ``snaps`` (``dswm.methods.snapshots.for_train_job``) when there
-    are any.
+    (:func:`dswm.pipeline.setup.training_core`; ``days``: those of them, a learning run's), passing ``snaps``
+    (``dswm.methods.snapshots.for_train_job``) when there are any.
 
     Returns:
         (the fitted controller, a copy of what ``fit`` returned).
@@ -102,7 +102,7 @@ def fit_on_training_days(run: tracking.JobRun, s: JobSetup, *, tensor, tensor_di
     log_demand_input(run, tensor_dir, dataset, "training")
     torch.manual_seed(seed)
     ctrl = build_controller(s, method, seed)
-    core = training_core(tensor, s.scenario, device=s.settings.device)
+    core = training_core(tensor, s.scenario, device=s.settings.device, days=days)
     manifest = dict(ctrl.fit(core, run_dir=run_dir, **({"snapshots": snaps} if snaps is not None else {})))
     return ctrl, manifest
 

@@ -132,9 +132,21 @@ def build_controller(s: JobSetup, method: str, seed: int) -> Controller:
                           device=s.settings.device)
 
 
-def training_core(tensor, scenario: Scenario, device: str = "cpu") -> FleetCore:
-    """A FleetCore over the TRAINING days only; ``core.day_ids`` maps its days to tensor day indices."""
-    return core_from_tensor(tensor, scenario, tensor.train_days, device=device)
+def training_core(tensor, scenario: Scenario, device: str = "cpu", days: Sequence[int] | None = None) -> FleetCore:
+    """A FleetCore over the TRAINING days only (``days``: those of them, e.g. a learning run's, which holds its
+    validation days out); ``core.day_ids`` maps its days to tensor day indices.
+
+    Raises:
+        ValueError: a day of ``days`` that is no training day.
+    """
+    train = [int(d) for d in tensor.train_days]
+    if days is not None:
+        stray = [int(d) for d in days if int(d) not in train]
+        if stray:
+            raise ValueError(f"meta.json of {tensor.meta['dataset']}: day(s) {stray} are no training days; a train "
+                             f"job fits on training days only")
+        train = [int(d) for d in days]
+    return core_from_tensor(tensor, scenario, train, device=device)
 
 
 def load_source_model(run: tracking.JobRun, ctrl: Controller, m: MethodSettings, *, model: str | Path | None,

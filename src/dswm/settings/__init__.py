@@ -22,10 +22,15 @@ One concern per module, every name re-exported here (``from dswm import settings
 - :mod:`~dswm.settings.resolver`: :func:`resolve` and the cross-key checks;
 - :mod:`~dswm.settings.calibration`: the demand intensity u and the calibrate rule's record;
 - :mod:`~dswm.settings.variants`: the extra runs' variants and the sample-efficiency probe's jobs;
-- :mod:`~dswm.settings.slices`: the slice each rule passes its job (:func:`param`, ``*_slice``, :class:`Untracked`).
+- :mod:`~dswm.settings.slices`: the slice each rule passes its job (:func:`param`, ``*_slice``, :class:`Untracked`);
+- :mod:`~dswm.settings.learning`: the learning curves' section, learners, caps and slices (kept out of
+  :class:`Settings`, so the tables' slices do not change with it).
 """
 from dswm.config import ConfigError, build
 from dswm.settings.calibration import CALIBRATION_RECORD, calibrated_scenario, intensity_inputs, read_intensity
+from dswm.settings.learning import (LearningSettings, capped_settings, check_learning, learning_methods,
+                                    learning_references, learning_score_slice, learning_settings,
+                                    learning_train_slice)
 from dswm.settings.model import MethodSettings, Settings, evaluated_as, needs_gpu
 from dswm.settings.resolver import (check_figures, check_profile_datasets, check_raw_files, resolve,
                                    select_profile)
@@ -46,6 +51,8 @@ from dswm.settings.variants import (VARIANT_KINDS, Variant, extra_jobs, extra_va
 __all__ = [
     "ConfigError", "build",
     "CALIBRATION_RECORD", "calibrated_scenario", "intensity_inputs", "read_intensity",
+    "LearningSettings", "capped_settings", "check_learning", "learning_methods", "learning_references",
+    "learning_score_slice", "learning_settings", "learning_train_slice",
     "MethodSettings", "Settings", "evaluated_as", "needs_gpu",
     "check_figures", "check_profile_datasets", "check_raw_files", "resolve", "select_profile",
     "SCHEMA", "SETTINGS_MARKER", "coerce_cli_strings", "complete_schema", "load_schema", "settings_class",

@@ -237,10 +237,12 @@ class DSWMController(PlanningController):
         ckpt = run_dir / "checkpoint.pt"
 
         def take_snapshot(done: int) -> None:
-            snapshots.step(done=done, total=self.settings.steps, n_transitions=replay.n_transitions, write=self.save)
+            snapshots.step(done=done, total=self.settings.steps, n_transitions=replay.n_transitions,
+                           gradient_steps=done, write=self.save)
 
         if snapshots is not None:
             snapshots.claim(ckpt)
+            snapshots.start(total=self.settings.steps, n_transitions=replay.n_transitions, write=self.save)
         # A checkpoint resumes only the same run: same settings AND the same training data, scenario and days
         # (a rerun after the tensor or the scenario changed trains from scratch).
         history = train(self.model, replay, steps=self.settings.steps, cfg=self.settings.training,

@@ -89,11 +89,18 @@ class EMORLTCTOController(Controller):
         if state is not None and state.get("identity") == identity and state["tasks_done"] <= evo.total_tasks():
             evo.load_state_dict(state)  # the same run, interrupted or shorter: continue it
         del state
+        if snapshots is not None:
+            def write_initial(path: Path) -> None:
+                self._keep_initial(evo, train_core)
+                self.save(path)
+
+            snapshots.start(total=evo.total_tasks(), n_transitions=evo.horizon * len(evo.day_log),
+                            gradient_steps=evo.gradient_steps(), write=write_initial)
         every = self.settings.checkpoint_every
         while not evo.finished():
             evo.run_task()
             if snapshots is not None:
-                snapshots.step(done=evo.tasks_done, total=evo.total_tasks(),
+                snapshots.step(done=evo.tasks_done, total=evo.total_tasks(), gradient_steps=evo.gradient_steps(),
                                n_transitions=evo.horizon * len(evo.day_log), write=write_snapshot)
             if evo.tasks_done % every == 0 or evo.finished():
                 evo.save(ckpt, identity)
@@ -123,16 +130,29 @@ class EMORLTCTOController(Controller):
         ``with_pending``, from one in progress: the non-dominated members of the archive and the current
         generation's children so far (the archive the generation would end with if it ended now; ``evo`` is
         left as it was)."""
-        ids = evo.venv.day_ids
         members = evo.archive
         if with_pending:
             candidates = evo.archive + evo.pending
             members = [candidates[i] for i in non_dominated(np.stack([evo.members[m].objectives
                                                                       for m in candidates]))]
-        self.archive = [{"id": m.id, "parent": m.parent, "generation": m.generation,
-                         "weight": [float(x) for x in m.weight], "objectives": [float(x) for x in m.objectives],
-                         "policy": {k: v.detach().cpu().clone() for k, v in m.params["policy"].items()}}
-                        for m in (evo.members[i] for i in members)]
+        self._keep_archive(evo, core, [{"id": m.id, "parent": m.parent, "generation": m.generation,
+                                        "weight": [float(x) for x in m.weight],
+                                        "objectives": [float(x) for x in m.objectives],
+                                        "policy": {k: v.detach().cpu().clone() for k, v in m.params["policy"].items()}}
+                                       for m in (evo.members[i] for i in members)])
+
+    def _keep_initial(self, evo: Evolution, core) -> None:
+        """The untrained model (the learning curves' first point): an archive of the one policy the evolution's
+        worker holds before its first task, unmeasured (objectives 0), so that the select rule executes it."""
+        policy = evo.worker.policy.state_dict()
+        self._keep_archive(evo, core, [{"id": -1, "parent": None, "generation": -1, "weight": [0.0] * len(OBJECTIVES),
+                                        "objectives": [0.0] * len(OBJECTIVES),
+                                        "policy": {k: v.detach().cpu().clone() for k, v in policy.items()}}])
+
+    def _keep_archive(self, evo: Evolution, core, archive: list[dict]) -> None:
+        """Keep ``archive`` (the model file's members) with what acting needs, and build the selected policy."""
+        self.archive = archive
+        ids = evo.venv.day_ids
         s, grid, sc = self.settings, core.grid, core.scenario
         self.scenario = sc
         self.meta = {"format": FORMAT, "method": self.name, "seed": self.seed,

@@ -173,6 +173,10 @@ class SB3Controller(Controller):
         else:
             model, writer, done = resumed
         model.set_logger(history_logger(writer))
+        if snapshots is not None:
+            snapshots.start(total=rounds, n_transitions=int(model.num_timesteps),
+                            gradient_steps=self.gradient_steps(model),
+                            write=lambda path: self._save_snapshot(path, model))
         every = max(1, math.ceil(rounds / MAX_HISTORY_POINTS))
         dumps = DumpEachUpdate(model._n_updates)
         for r in range(done, rounds):
@@ -186,6 +190,7 @@ class SB3Controller(Controller):
                 writer.point(model.num_timesteps)
             if snapshots is not None:
                 snapshots.step(done=r + 1, total=rounds, n_transitions=int(model.num_timesteps),
+                               gradient_steps=self.gradient_steps(model),
                                write=lambda path: self._save_snapshot(path, model))
             if (r + 1) % s.checkpoint_every == 0 or r + 1 == rounds:
                 self._write_checkpoint(ckpt, model, venv, writer, r + 1, identity)

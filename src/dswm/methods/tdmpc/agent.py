@@ -171,6 +171,9 @@ class TDMPCController(Controller):
                 torch.save(blob, tmp)
 
         window = max(1, s.steps // s.log_points)
+        if snapshots is not None:
+            snapshots.start(total=s.steps, n_transitions=replay.n_transitions, gradient_steps=learner.step,
+                            write=self.save)
 
         def train_until(target: int) -> None:
             while learner.step < target:
@@ -187,7 +190,7 @@ class TDMPCController(Controller):
                     run["acc"], run["n_acc"] = dict.fromkeys(METRICS, 0.0), 0
                 if snapshots is not None:
                     snapshots.step(done=learner.step, total=s.steps, n_transitions=replay.n_transitions,
-                                   write=self.save)
+                                   gradient_steps=learner.step, write=self.save)
                 if learner.step % s.checkpoint_every == 0 or learner.step == target:
                     checkpoint()
 

@@ -24,6 +24,8 @@ RUN_KINDS = {
     "extra": "an extra run behind a figure (do(s) probe, scaling sweeps; workflow/rules/extra.smk)",
     "probe": "the sample-efficiency probe of a train job's snapshots (workflow/rules/probes.smk)",
     "wm_quality": "the world-model quality replay of a DSWM model (workflow/rules/wm.smk)",
+    "learning": "a learning-curve run: a learner at its cap and its snapshots on validation days "
+                "(workflow/rules/learning.smk)",
 }
 """The ``kind`` tag of a run -> what the run is. The main runs go to the experiment ``mlflow.experiment``; the
 others, which only the figures use, to :func:`figures_experiment`, so the UI opens on the tables' runs alone."""
@@ -32,8 +34,9 @@ FIGURES_SUFFIX = "-figures"
 EXPERIMENT_NOTES = {
     "main": "The runs of the tables: one train or evaluate run per job (tag kind = main). The runs behind the "
             "figures only are in the experiment '{figures}'.",
-    "figures": "The runs behind the figures only, none a table's source: extra runs, the sample-efficiency probe "
-               "and the world-model quality replay (tag kind = extra, probe or wm_quality). The tables' runs are "
+    "figures": "The runs behind the figures only, none a table's source: extra runs, the sample-efficiency probe, "
+               "the world-model quality replay and the learning curves (tag kind = extra, probe, wm_quality or "
+               "learning). The tables' runs are "
                "in the experiment '{main}'.",
 }
 """Each experiment's description (the ``mlflow.note.content`` tag the UI shows above its runs)."""
