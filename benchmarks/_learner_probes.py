@@ -62,7 +62,7 @@ class Recorder:
     def __init__(self, *, stop_after: int | None, at_units: Mapping[int, Callable] | None = None):
         self.stop_after = stop_after
         self.at_units = dict(at_units or {})
-        self.start = time.perf_counter()
+        self.t0 = time.perf_counter()
         self.unit_end: list[float] = []      # when each unit's step() was entered
         self.unit_left: list[float] = []     # when it returned (the next unit starts then)
         self.transitions: list[int] = []
@@ -74,7 +74,12 @@ class Recorder:
     def claim(self, checkpoint) -> None:
         """Nothing to claim: the probe runs in a fresh directory."""
 
-    def step(self, *, done: int, total: int, n_transitions: int, write) -> list[float]:
+    def start(self, *, total: int, n_transitions: int, write, gradient_steps: int | None = 0) -> list[float]:
+        """No untrained snapshot: the probe times the updates only."""
+        return []
+
+    def step(self, *, done: int, total: int, n_transitions: int, write,
+             gradient_steps: int | None = None) -> list[float]:
         self.unit_end.append(time.perf_counter())
         self.transitions.append(int(n_transitions))
         hook = self.at_units.get(len(self.unit_end))
@@ -101,7 +106,7 @@ class Recorder:
     # ---- what was measured -------------------------------------------------------------------------------
     def unit_times(self) -> list[float]:
         """Seconds of every unit recorded (the first from the recorder's creation: set-up included)."""
-        starts = [self.start, *self.unit_left[:-1]]
+        starts = [self.t0, *self.unit_left[:-1]]
         return [end - start for start, end in zip(starts, self.unit_end)]
 
     def env_intervals(self, first: int, last: int) -> list[tuple[float, int]]:
@@ -147,7 +152,7 @@ def run_fit(cls, name: str, options: Any, core, recorder: Recorder, seed: int = 
     torch.manual_seed(seed)
     ctl = recorder.controller = cls(name=name, seed=seed, device="cpu", options=options)
     with tempfile.TemporaryDirectory(prefix=f"bench-{name}-") as run_dir:
-        recorder.start = time.perf_counter()
+        recorder.t0 = time.perf_counter()
         try:
             return ctl.fit(core, run_dir=run_dir, snapshots=recorder)
         except Enough:
