@@ -31,7 +31,7 @@ from _timing import RESULTS, spread_ms, write
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.methods.dswm.agent import DSWMController
 from dswm.methods.dswm.settings import resolve as dswm_settings
-from dswm.sim.scenario import Scenario
+from dswm.sim.scenario import load_scenario
 from dswm.methods.base import DayContext
 from dswm.sim.core import FleetCore, Grid, initial_positions
 from dswm.sim.env import synthetic_demand
@@ -186,7 +186,7 @@ def main() -> None:
     keep_freed_memory()   # as every job does (dswm.pipeline.jobs)
     load0 = __import__("os").getloadavg()[0]
     cfg = yaml.safe_load((RESULTS.parents[1] / "config.yaml").read_text())
-    scenario = Scenario.from_dict(cfg["scenario"])
+    scenario = load_scenario(RESULTS.parents[1] / "config.yaml", standin=True)  # u: the demo calibration
     grid = Grid(rows=20, cols=20, cell_m=235.0)
     demand = synthetic_demand(days=2, rows=20, cols=20, slots=scenario.slots_per_day, seed=0) + 0.02
     core = FleetCore(demand=demand, grid=grid, scenario=scenario, dataset="bench", day_labels=["d0", "d1"],
