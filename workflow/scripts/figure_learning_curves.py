@@ -6,14 +6,15 @@ sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by
 
 import json
 
-from dswm.figures.learning import curve_table, draw_learning_curves, read_curves
+from dswm.figures.common import read_parquets
+from dswm.figures.learning import curve_table, draw_learning_curves
 from dswm.pipeline.history import read_histories
 
 inp, p = snakemake.input, snakemake.params  # noqa: F821
 out = {k: getattr(snakemake.output, k) for k in ("png", "pdf", "csv")}  # noqa: F821
 with open(inp.meta, encoding="utf-8") as fh:
     source = json.load(fh)["source"]
-table = curve_table(read_curves(inp.curves), read_curves(inp.references))
+table = curve_table(read_parquets(inp.curves), read_parquets(inp.references))
 draw_learning_curves(table, read_histories(inp.histories), order=p.methods, labels=p.labels, ladder=p.ladder,
                      profile=p.profile, source=source, out=out)
 

@@ -59,6 +59,13 @@ def read_csv(path: str | Path) -> pl.DataFrame:
     return pl.read_csv(path, comment_prefix="#")
 
 
+def read_parquets(paths: Iterable[str | Path]) -> pl.DataFrame:
+    """Parquet files ``paths`` (probe or learning-curve score files) as one frame, columns united; an empty frame with
+    no columns when there are none."""
+    frames = [pl.read_parquet(p) for p in paths]
+    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
+
+
 def read_days(paths: Iterable[str | Path]) -> pl.DataFrame:
     """The per-day result files ``paths`` (days.parquet) as one frame, in the order given."""
     frames = [pl.read_parquet(p) for p in paths]

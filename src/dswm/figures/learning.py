@@ -11,7 +11,7 @@ validation days' labels, ";"-joined) and ``dataset``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import polars as pl
 
@@ -33,11 +33,6 @@ CAPTION = ("Learning curves: served ratio on the validation days {days} ({datase
            "{refs} on the same days as horizontal lines. Right: the run's training return (DSWM: its world-model "
            "loss) from its loss history. Diagnostic only: never in a table.")
 
-
-def read_curves(paths: Iterable[str | Path]) -> pl.DataFrame:
-    """The score files ``paths`` (``dswm.pipeline.learning.learning_score_job``) as one frame."""
-    frames = [pl.read_parquet(p) for p in paths]
-    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
 
 
 def curve_table(scores: pl.DataFrame, references: pl.DataFrame) -> pl.DataFrame:

@@ -10,7 +10,7 @@ transitions are all collected before its first gradient step (DSWM's pre-collect
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import polars as pl
 
@@ -22,11 +22,6 @@ CAPTION = ("Paper Fig. 9 (sample_efficiency): served ratio on the probe day {day
            "the budget done (a method whose transitions are all collected before training, as DSWM's, stands at "
            "one x in (a)). Probe numbers: diagnostic only, no early stopping or model selection, never in a table.")
 
-
-def read_probes(paths: Iterable[str | Path]) -> pl.DataFrame:
-    """The probe files ``paths`` as one frame (empty, with no columns, when there are none)."""
-    frames = [pl.read_parquet(p) for p in paths]
-    return pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
 
 
 def probe_table(probes: pl.DataFrame) -> pl.DataFrame:
@@ -61,7 +56,7 @@ def draw_sample_efficiency(probes: pl.DataFrame, *, order: Sequence[str], labels
     """Draw paper Fig. 9 and write it (PNG, PDF and the CSV of the numbers drawn).
 
     Args:
-        probes: the rows of the probe files (:func:`read_probes`): method, seed, fraction, fraction_done,
+        probes: the rows of the probe files (``dswm.figures.common.read_parquets``): method, seed, fraction, fraction_done,
             n_transitions, sr_mean, label, dataset.
         order: the methods, in legend order; labels: {method: label}; fractions: the requested budget fractions.
         out: {"png", "pdf", "csv"} paths.
