@@ -18,8 +18,8 @@ import polars as pl
 
 from dswm.methods import snapshots
 from dswm.pipeline.jobs import finish_training, fit_on_training_days
-from dswm.pipeline.setup import build_controller, load_tensor, open_run, prepared_files_read, set_up, workdir_relative
-from dswm.protocol.evaluation import evaluate
+from dswm.pipeline.setup import (load_tensor, open_run, prepared_files_read, score_snapshot, set_up,
+                                 workdir_relative)
 from dswm.protocol.learning import VALIDATION_SPLIT, learning_days
 from dswm.settings import Display, EvaluationSettings, Runtime
 from prep.atomic import atomic_path
@@ -85,7 +85,6 @@ def learning_score_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
         ladder order, the untrained snapshot first.
     """
     s = set_up(job, "evaluation", EvaluationSettings, intensity)
-    ev = s.settings
     tensor = load_tensor(tensor_dir)
     _, val = learning_days(tensor, int(job["validation_days"]))
     entries = snapshots.read_index(snapshots_dir) if snapshots_dir is not None else [None]
@@ -100,14 +99,9 @@ def learning_score_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
             if key not in scored:
                 print(f"learning_score: {method}" + ("" if e is None else f", snapshot at fraction {e['fraction']:g} "
                       f"of the cap ({e['n_transitions']} transitions)"), file=sys.stderr)
-                ctrl = build_controller(s, method, seed)
-                if e is not None:
-                    ctrl.load(e["path"])
-                scored[key] = evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
-                                       limits={"id": None, "ood": None}, profile=s.job["profile"], device=ev.device,
-                                       batch_days=ev.batch_days, trajectory=False,
-                                       progress_interval_s=display.progress_mininterval_s,
-                                       days={VALIDATION_SPLIT: val}).days
+                scored[key] = score_snapshot(s, tensor=tensor, method=method, seed=seed,
+                                             path=None if e is None else e["path"], days={VALIDATION_SPLIT: val},
+                                             progress_interval_s=display.progress_mininterval_s)
             frames.append(scored[key].with_columns(**{k: pl.lit(v) for k, v in _curve_marks(e).items()}))
             if e is not None:
                 run.log_metrics({"learning/sr_mean": float(scored[key]["sr_mean"].mean())},

@@ -10,9 +10,8 @@ import polars as pl
 
 from dswm.methods import snapshots
 from dswm.pipeline.jobs import DAY_METRICS
-from dswm.pipeline.setup import build_controller, load_tensor, open_run, set_up, workdir_relative
+from dswm.pipeline.setup import load_tensor, open_run, score_snapshot, set_up, workdir_relative
 from dswm.protocol import probe
-from dswm.protocol.evaluation import evaluate
 from dswm.settings import Display, EvaluationSettings
 from prep.atomic import atomic_path, write_json
 from prep.rawio import sha256_file
@@ -44,7 +43,6 @@ def probe_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display:
         PROBE_COLUMNS, one row per requested fraction, in order.
     """
     s = set_up(job, "evaluation", EvaluationSettings, intensity)
-    ev = s.settings
     tensor = load_tensor(tensor_dir)
     day = probe.probe_day(tensor)
     entries = snapshots.read_index(snapshots_dir)
@@ -60,13 +58,9 @@ def probe_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display:
         rows = []
         for e in entries:
             if e["sha256"] not in scored:  # fractions reached at the same unit share one snapshot
-                ctrl = build_controller(s, method, seed)
-                ctrl.load(e["path"])
-                res = evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
-                               limits={"id": None, "ood": None}, profile=s.job["profile"], device=ev.device,
-                               batch_days=ev.batch_days, trajectory=False,
-                               progress_interval_s=display.progress_mininterval_s, days={probe.PROBE_SPLIT: [day]})
-                scored[e["sha256"]] = res.days.row(0, named=True)
+                scored[e["sha256"]] = score_snapshot(
+                    s, tensor=tensor, method=method, seed=seed, path=e["path"], days={probe.PROBE_SPLIT: [day]},
+                    progress_interval_s=display.progress_mininterval_s).row(0, named=True)
             row = dict(scored[e["sha256"]])
             rows.append({**row, "probe": True, "fraction": float(e["fraction"]),
                          "fraction_done": float(e["fraction_done"]), "done": int(e["done"]), "total": int(e["total"]),

@@ -26,6 +26,7 @@ from dswm.methods import registry
 from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
+from dswm.protocol.evaluation import evaluate
 from dswm.settings import EvaluationSettings, MethodSettings, Runtime, calibrated_scenario, scale_intensity
 from dswm.sim.core import FleetCore, core_from_tensor
 from dswm.sim.scenario import Scenario
@@ -130,6 +131,21 @@ def build_controller(s: JobSetup, method: str, seed: int) -> Controller:
     device."""
     return registry.build(method, target=s.method.target, options=s.method.options, seed=seed,
                           device=s.settings.device)
+
+
+def score_snapshot(s: JobSetup, *, tensor, method: str, seed: int, path: str | Path | None,
+                   days: Mapping[str, Sequence[int]], progress_interval_s: float):
+    """Evaluate a fresh controller of ``method``, with the model file ``path`` loaded (None: as built), on ``days``
+    ({split: day indices}) in the evaluation's own environment and initial fleet (``s.settings``: the job's
+    EvaluationSettings); its per-day rows. The evaluation seeds torch and numpy with ``seed`` each time, so a
+    snapshot's number does not depend on the ones scored before it (the probe and learning-curve jobs)."""
+    ctrl = build_controller(s, method, seed)
+    if path is not None:
+        ctrl.load(path)
+    ev = s.settings
+    return evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed, limits={"id": None, "ood": None},
+                    profile=s.job["profile"], device=ev.device, batch_days=ev.batch_days, trajectory=False,
+                    progress_interval_s=progress_interval_s, days=days).days
 
 
 def training_core(tensor, scenario: Scenario, device: str = "cpu", days: Sequence[int] | None = None) -> FleetCore:
