@@ -16,7 +16,8 @@ import yaml
 from dswm import settings as S
 from dswm.config import ConfigError
 from dswm.figures.common import read_csv
-from dswm.figures.learning import CSV_COLUMNS, curve_axis, curve_table
+from dswm.figures.learning import (CSV_COLUMNS, VERDICT_COLUMNS, curve_axis, curve_table, learning_verdict,
+                                   return_rise, sr_learned, training_units)
 from dswm.methods.snapshots import Snapshots, SnapshotError
 from dswm.protocol.learning import learning_days
 
@@ -85,7 +86,8 @@ def test_a_ladder_without_the_cap_or_a_zero_fraction_is_refused_naming_the_key()
 def test_a_cap_merges_over_the_profile_budget_and_a_bad_key_names_the_cap():
     settings, learning = resolved(config("demo"))
     job = S.learning_train_slice(settings, learning, "ppo")
-    assert job["method"]["options"]["day_episodes"] == 4480
+    paper, _ = resolved(config("paper"))  # the issue: PPO's curve reaches its paper budget, 1,002,144 transitions
+    assert job["method"]["options"]["day_episodes"] == paper.methods["ppo"].options.day_episodes == 7008
     assert job["method"]["options"]["n_envs"] == settings.methods["ppo"].options.n_envs == 8  # the demo's own
     assert S.learning_train_slice(settings, learning, "dswm")["method"]["options"]["steps"] == 3200
     bad = config("demo")
@@ -174,6 +176,56 @@ def test_a_learner_whose_snapshots_share_their_transitions_is_drawn_against_its_
                                                    "ones included)")
 
 
+# ---- the verdict (criterion 2 of the learning-curves issue) ------------------------------------------------------
+def test_the_return_rises_only_by_more_than_twice_the_standard_error_of_its_tenths():
+    noise = np.tile([-1.0, 1.0], 50)  # 100 units: tenths of 10, each with sample std ~1.05
+    v = noise + np.linspace(0.0, 3.0, 100)
+    first, last, rise, se = return_rise(v)
+    assert (first, last) == pytest.approx((v[:10].mean(), v[-10:].mean())) and rise == pytest.approx(last - first)
+    assert se == pytest.approx(np.sqrt(np.var(v[:10], ddof=1) / 10 + np.var(v[-10:], ddof=1) / 10)) and rise > 2 * se
+    _, _, rise, se = return_rise(noise + np.linspace(0.0, 0.5, 100))  # rise 0.45 < 2 x 0.47
+    assert not rise > 2 * se
+    _, _, rise, _ = return_rise(np.linspace(5.0, 1.0, 100), falling=True)  # a loss that falls has risen
+    assert rise == pytest.approx(4.0 * 90 / 99)  # tenths 90 of 99 steps of 4/99 apart
+    assert return_rise([1.0, 2.0, 3.0])[3] == float("inf")  # one unit per tenth: no standard error, no verdict
+
+
+def test_the_served_ratio_must_gain_5_points_unless_the_untrained_policy_already_serves_like_static():
+    assert sr_learned(0.50, 0.55, static=0.70) and not sr_learned(0.50, 0.549, static=0.70)
+    assert sr_learned(0.68, 0.68, static=0.70) and not sr_learned(0.68, 0.679, static=0.70)  # within 0.05 of Static
+    assert not sr_learned(0.60, 0.64, static=None)
+
+
+def test_repeated_and_seeded_values_are_not_units_of_the_learner_s_own():
+    history = pl.DataFrame({"step": [10, 20, 30, 40, 50], "charts/episode_reward": [-9.0, -9.0, -5.0, -5.0, -4.0],
+                            "charts/episode_return": [1.0, None, 2.0, float("nan"), 3.0]})
+    assert training_units(history, "charts/episode_reward").rows() == [(30, -5.0), (50, -4.0)]  # pre-collection off
+    assert training_units(history, "charts/episode_return").rows() == [(10, 1.0), (30, 2.0), (50, 3.0)]
+
+
+def test_the_verdict_finds_the_first_snapshot_where_both_criteria_hold():
+    scores = pl.concat([score_rows("ppo", f, int(f * 1000), int(f * 10), (sr,) * 3) for f, sr in
+                        ((0.0, 0.50), (0.25, 0.52), (0.5, 0.56), (1.0, 0.60))]
+                       + [score_rows("sac", f, int(f * 1000), int(f * 10), (sr,) * 3) for f, sr in
+                          ((0.0, 0.50), (0.25, 0.60), (0.5, 0.60), (1.0, 0.49))])
+    refs = pl.concat([score_rows("static", None, None, None, (0.7,) * 3),
+                      score_rows("greedy", None, None, None, (0.8,) * 3)])
+    steps = np.arange(1, 101) * 10
+    rng = np.random.default_rng(0)
+    histories = pl.concat([pl.DataFrame({"method": m, "seed": 0, "step": steps,
+                                         "rollout/ep_rew_mean": np.linspace(-80.0, -60.0, 100) + rng.normal(0, 1, 100)})
+                           for m in ("ppo", "sac")])
+    verdict = learning_verdict(curve_table(scores, refs), histories)
+    assert tuple(verdict.columns) == VERDICT_COLUMNS
+    ppo, sac = (verdict.filter(pl.col("method") == m).row(0, named=True) for m in ("ppo", "sac"))
+    assert ppo["return_rises"] and ppo["sr_learned"] and ppo["learned"]
+    # 0.25: the return over its first 25 units rises, but the served ratio gained 0.02 only; 0.5: both hold
+    assert (ppo["learned_at_fraction"], ppo["learned_at_transitions"], ppo["learned_at_gradient_steps"]) == (0.5, 500, 5)
+    assert ppo["units"] == 100 and ppo["sr_gain"] == pytest.approx(0.10)
+    assert sac["return_rises"] and not sac["sr_learned"] and not sac["learned"]  # it ends below where it started
+    assert sac["learned_at_fraction"] == 0.25  # ... though it had learned at a quarter of its cap
+
+
 # ---- the target --------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def learning_run(tmp_path_factory):
@@ -220,6 +272,11 @@ def test_the_learning_target_writes_a_curve_per_learner_on_the_validation_days(l
     static = pl.read_parquet(learning_run / "results" / "learning" / "milan" / "static" / "seed0" / "curve.parquet")
     assert static["label"].to_list() == want_days.split(";") and set(static["split"].to_list()) == {"validation"}
     assert table["static_sr"][0] == pytest.approx(float(static["sr_mean"].mean()))
+    verdict = read_csv(csv.with_name("learning_verdict.csv"))
+    assert sorted(verdict["method"].to_list()) == sorted(learners) and tuple(verdict.columns) == VERDICT_COLUMNS
+    for r in verdict.iter_rows(named=True):  # its served-ratio gain is the curve's, cap against untrained
+        rows = table.filter(pl.col("method") == r["method"]).sort("fraction")["probe_sr"]
+        assert r["sr_gain"] == pytest.approx(rows[-1] - rows[0]) and r["untrained_sr"] == pytest.approx(rows[0])
 
 
 @pytest.mark.integration
