@@ -85,6 +85,8 @@ rule figure_learning_curves:
         pdf=f"{FIGURE_DIR}/learning_curves.pdf",
         csv=report(f"{FIGURE_DIR}/learning_curves.csv", caption="../report/learning_curves.rst",
                    category="Learning curves", labels={"figure": "learning_curves", "file": "data (CSV)"}),
+        verdict=report(f"{FIGURE_DIR}/learning_verdict.csv", caption="../report/learning_curves.rst",
+                       category="Learning curves", labels={"figure": "learning_curves", "file": "verdict (CSV)"}),
     params:
         attach=figure_attach(["learning"], [LEARNING.dataset], LEARNERS + LEARNING_REFERENCES),
         profile=PROFILE,
