@@ -5,12 +5,8 @@ changes only how a gradient step is computed, at the paper's sizes a 2,914-wide 
 
 * the critics' parameters are frozen while the actor's loss is differentiated: SB3 computes their gradients
   there too and throws them away at the next critic step (the most expensive part of that backward pass);
-* every Q evaluation splits the critics' first layers, W [s, a] = W_s s + W_a a, and stacks the two critics'
-  into one product: the actor's backward pass through Q(s, pi(s)) reaches the 48 action inputs without a product
-  over the 2,914 observation inputs, and the observations enter one product instead of two (only rounding
-  changes);
-* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`), and the sampled
-  observations are converted to it once per step;
+* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the sampled
+  observations are converted to it once per step and each critic input [s, a] is built once in it;
 * the actor's and the critics' optimizers are torch's fused Adam (``fused=True``: one pass over the parameters
   instead of a dozen; the same update up to rounding);
 * the Polyak step of the target critics is one ``torch._foreach`` call per operation (SB3's arithmetic:
@@ -26,7 +22,7 @@ from stable_baselines3.common.buffers import ReplayBuffer as SB3ReplayBuffer
 from stable_baselines3.common.utils import polyak_update
 from torch.nn import functional as F
 
-from dswm.methods.matmul import MATMUL_DTYPES, linear, set_matmul_dtype
+from dswm.methods.matmul import MATMUL_DTYPES, set_matmul_dtype
 
 
 class ReplayBuffer(SB3ReplayBuffer):
@@ -59,16 +55,10 @@ class SAC(stable_baselines3.SAC):
 
     def _q(self, critic, features: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """(N, n_critics) Q(s, a) of ``critic``'s networks on ``features`` (the flat observations, already in the
-        products' dtype) and ``actions``: the networks' first layers stacked into one product, split into their
-        observation and action parts."""
-        dtype = MATMUL_DTYPES[self.matmul_dtype]
-        d = features.shape[1]
-        firsts = [q_net[0] for q_net in critic.q_networks]
-        weight = torch.cat([first.weight.to(dtype) for first in firsts])  # (n_critics H, D + A)
-        bias = torch.cat([first.bias for first in firsts])
-        h = linear(features, weight[:, :d], bias, dtype) + linear(actions, weight[:, d:], None, dtype)
-        return torch.cat([q_net[1:](part) for q_net, part in zip(critic.q_networks, h.chunk(len(firsts), dim=1),
-                                                                   strict=True)], dim=1)
+        products' dtype) and ``actions``: SB3's ``ContinuousCritic.forward`` with the input [s, a] built once in
+        that dtype."""
+        x = torch.cat([features, actions.to(features.dtype)], dim=1)
+        return torch.cat([q_net(x) for q_net in critic.q_networks], dim=1)
 
     def _polyak(self) -> None:
         with torch.no_grad():
