@@ -5,8 +5,9 @@ changes only how a gradient step is computed, at the paper's sizes a 2,914-wide 
 
 * the critics' parameters are frozen while the actor's loss is differentiated: SB3 computes their gradients
   there too and throws them away at the next critic step (the most expensive part of that backward pass);
-* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the sampled
-  observations are converted to it once per step and each critic input [s, a] is built once in it;
+* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the critics'
+  input [s, a] is built once per evaluation in that dtype (the actor reads float32 observations: SB3's
+  preprocessing would convert them back);
 * the actor's and the critics' optimizers are torch's fused Adam (``fused=True``: one pass over the parameters
   instead of a dozen; the same update up to rounding);
 * the Polyak step of the target critics is one ``torch._foreach`` call per operation (SB3's arithmetic:
@@ -76,12 +77,13 @@ class SAC(stable_baselines3.SAC):
         dtype = MATMUL_DTYPES[self.matmul_dtype]
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
+            # The critics' observations in the products' dtype
             obs, next_obs = replay_data.observations.to(dtype), replay_data.next_observations.to(dtype)
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             if self.use_sde:
                 self.actor.reset_noise()
             # Action by the current actor for the sampled state
-            actions_pi, log_prob = self.actor.action_log_prob(obs)
+            actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
             log_prob = log_prob.reshape(-1, 1)
             # Entropy coefficient
             ent_coef_loss = None
@@ -98,7 +100,7 @@ class SAC(stable_baselines3.SAC):
                 self.ent_coef_optimizer.step()
             # Critic: TD target from the target critics, the actor's next action and its entropy
             with torch.no_grad():
-                next_actions, next_log_prob = self.actor.action_log_prob(next_obs)
+                next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
                 next_q_values = self._q(self.critic_target, next_obs, next_actions)
                 next_q_values, _ = torch.min(next_q_values, dim=1, keepdim=True)
                 next_q_values = next_q_values - ent_coef * next_log_prob.reshape(-1, 1)
