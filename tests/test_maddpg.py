@@ -147,6 +147,28 @@ def test_shared_actor_runs_the_layers_of_its_multiagent_mlps():
     torch.testing.assert_close(pre, actor.head(feats))
 
 
+def test_bfloat16_inputs_are_the_float32_inputs_rounded_once():
+    """Learner.inputs in bfloat16 reads the maps rounded once; every observation equals the float32 one rounded."""
+    gen = torch.Generator().manual_seed(0)
+    days, rows, cols, k, n = 2, 6, 6, 4, 32
+    maps = torch.rand((days, 144, rows, cols), generator=gen) * 3
+    batch = {"day": torch.randint(0, days, (n,), generator=gen), "slot": torch.randint(0, 143, (n,), generator=gen),
+             "fleet": torch.rand((n, k, 7), generator=gen), "time": torch.rand((n, 2), generator=gen),
+             "action": torch.rand((n, k, 3), generator=gen), "reward": torch.rand(n, generator=gen),
+             "terminated": torch.zeros(n, dtype=torch.bool), "truncated": torch.zeros(n, dtype=torch.bool),
+             "next_fleet": torch.rand((n, k, 7), generator=gen), "next_time": torch.rand((n, 2), generator=gen)}
+    for name in ("fleet", "next_fleet"):  # the active flag is 0 or 1: the occupancy counts are exact
+        batch[name][..., 3] = (batch[name][..., 3] > 0.3).float()
+    got = {}
+    for dtype in ("float32", "bfloat16"):
+        learner = Learner(settings=dataclasses.replace(SMALL, matmul_dtype=dtype), rows=rows, cols=cols, maps=3,
+                          n_agents=k)
+        got[dtype] = learner.inputs(batch, maps)
+    for name in ("local", "joint", "next_local", "next_joint"):
+        full, half = getattr(got["float32"], name), getattr(got["bfloat16"], name)
+        assert full.dtype == torch.float32 and torch.equal(half, full.to(torch.bfloat16)), name
+
+
 def test_bfloat16_products_keep_a_gradient_step_close_to_float32():
     """The same learner, batch and random state with float32 and with bfloat16 products: the step's losses and
     mean Q within 2 %, and not identical (the bfloat16 products were used)."""

@@ -66,6 +66,7 @@ class Learner:
         self._polyak = [(list(net.parameters()), list(target.parameters()))
                         for net, target in ((self.actor, self.target_actor), (self.critic, self.target_critic))]
         self.steps = 0
+        self._maps: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ---- acting ------------------------------------------------------------------------------------------
     def local(self, maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
@@ -85,6 +86,9 @@ class Learner:
         days' SCALED demand (``networks.scale_demand``); the observations in the products' dtype (they enter the
         networks' first layers only)."""
         b = {k: v.to(self.device) for k, v in batch.items()}
+        if self._maps is None or self._maps[0] is not maps:  # rounded once to the products' dtype, as they would be
+            self._maps = (maps, maps.to(self.dtype))
+        maps = self._maps[1]
         now = window_maps(maps, b["day"], b["slot"], self.maps)
         nxt = window_maps(maps, b["day"], b["slot"] + 1, self.maps)
         return Inputs(local=self.local(now, b["fleet"], b["time"]).to(self.dtype),

@@ -57,7 +57,8 @@ def local_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tenso
         radius: crop half-width r in cells.
 
     Returns:
-        (N, K, local_dim(w+1, r)) float32: the crop (rows, cols, channels) flattened, then fleet_k, then time
+        (N, K, local_dim(w+1, r)) in the dtype of ``maps``: the crop (rows, cols, channels) flattened, then fleet_k,
+        then time
         (channels last, so that each crop row is one contiguous copy; :class:`SharedActor` orders its weight so).
     """
     n, m, rows, cols = maps.shape
@@ -76,7 +77,8 @@ def local_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tenso
     windows = padded.as_strided((n, rows, cols, side, side * ch), (pr * pc * ch, pc * ch, ch, pc * ch, 1))
     crop = windows[torch.arange(n, device=maps.device).unsqueeze(1), row, col].view(n, k, -1)  # (N, K, S S (w+2))
     crop[..., (radius * side + radius) * ch + m] -= active  # each UAV removes itself from its own cell's count
-    return torch.cat([crop, fleet, time.unsqueeze(1).expand(n, k, time.shape[-1])], dim=-1)
+    return torch.cat([crop, fleet.to(crop.dtype), time.to(crop.dtype).unsqueeze(1).expand(n, k, time.shape[-1])],
+                     dim=-1)
 
 
 def joint_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
