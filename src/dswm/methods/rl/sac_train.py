@@ -8,11 +8,14 @@ changes only how a gradient step is computed, at the paper's sizes a 2,914-wide 
 * every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the critics'
   input [s, a] is built once per evaluation in that dtype (the actor reads float32 observations: SB3's
   preprocessing would convert them back);
-* the actor's and the critics' optimizers are torch's fused Adam (``fused=True``: one pass over the parameters
-  instead of a dozen; the same update up to rounding);
+* (set by ``SACController`` through SB3's ``optimizer_kwargs``) the actor's and the critics' optimizers are
+  torch's fused Adam (``fused=True``: one pass over the parameters instead of a dozen; the same update up to
+  rounding);
 * the Polyak step of the target critics is one ``torch._foreach`` call per operation (SB3's arithmetic:
   target * (1 - tau) + tau * param, bit for bit);
 * the replay buffer hands its sampled rows to torch without a second copy (:class:`ReplayBuffer`).
+
+With ``matmul_dtype="float32"`` and the same optimizer a step is SB3's bit for bit (tests/test_rl_sb3.py).
 """
 from __future__ import annotations
 
