@@ -11,8 +11,8 @@ from pettingzoo.test import parallel_api_test
 from dswm.config import ConfigError
 from dswm.methods.maddpg import MADDPGController, MADDPGSettings
 from dswm.methods.maddpg.learner import Inputs, Learner
-from dswm.methods.maddpg.networks import (CentralCritic, SharedActor, agent_spread, joint_observation, local_dim,
-                                          local_observation, scale_demand)
+from dswm.methods.maddpg.networks import (HEAD_INIT, CentralCritic, SharedActor, agent_spread, joint_observation,
+                                          local_dim, local_observation, scale_demand)
 from dswm.methods.maddpg.replay import window_maps
 from dswm.methods.maddpg.training import Trainer, parallel_env
 from dswm.methods.trained import day_schedule
@@ -145,6 +145,25 @@ def test_shared_actor_runs_the_layers_of_its_multiagent_mlps():
     pre, got = actor(local)
     torch.testing.assert_close(got, feats)
     torch.testing.assert_close(pre, actor.head(feats))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_untrained_actor_holds_the_fleet(core, seed):
+    """The actor head's last layer starts uniform in +-HEAD_INIT (Lillicrap et al. 2016, section 7): at the paper's
+    actor sizes the untrained deterministic actions, on a day of observations, are all within 0.02 of zero (the
+    default init gave |actions| of 0.1-0.5 per UAV, the same sign over the day, and drifted the fleet)."""
+    paper_actor = dataclasses.replace(QUICK, crop_radius=3, index_embed=8, actor_hidden=64, actor_depth=2,
+                                      warmup=10 ** 6)
+    trainer = Trainer(core=core, settings=paper_actor, seed=seed)
+    head = trainer.learner.actor.head.params["0"]
+    assert head["weight"].shape == (3, 64) and head["bias"].shape == (3,)
+    assert max(head["weight"].abs().max(), head["bias"].abs().max()) <= HEAD_INIT  # the default's bound: 1 / 8
+    trainer.run_episode()  # uniform random actions: the fleet and the demand a day visits
+    x = trainer.learner.inputs(trainer.replay.take(torch.arange(143)), trainer.maps)
+    with torch.no_grad():
+        actions = torch.tanh(trainer.learner.actor(x.local)[0])
+    assert actions.shape == (143, 3, 3)
+    assert actions.abs().max() < 0.02
 
 
 def test_bfloat16_inputs_are_the_float32_inputs_rounded_once():

@@ -21,6 +21,9 @@ from dswm.methods.matmul import MATMUL_DTYPES, linear, set_matmul_dtype
 
 N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
+HEAD_INIT = 3e-3
+"""The actor head's last layer starts uniform in +-HEAD_INIT (weights and bias), as DDPG's (Lillicrap et al. 2016,
+section 7), so that the untrained policy's outputs are near zero: it holds the fleet instead of drifting it."""
 N_FLEET = 7
 """Fleet features per UAV (``dswm.sim.core.FLEET_FEATURES``)."""
 
@@ -93,7 +96,7 @@ class SharedActor(nn.Module):
     Both stages are ``torchrl.modules.MultiAgentMLP`` with shared parameters and no centralization (they hold the
     parameters and the state dict; :meth:`features` runs their layers over the agent axis); the body's last ReLU
     layer is the per-agent embedding whose spread across agents is monitored (a collapsed actor would give every
-    UAV the same features).
+    UAV the same features). The head starts near zero (:data:`HEAD_INIT`), so the untrained actor holds the fleet.
     """
 
     def __init__(self, *, n_agents: int, obs_dim: int, embed: int, hidden: int, depth: int, crop: tuple[int, int],
@@ -109,6 +112,9 @@ class SharedActor(nn.Module):
         self.body = MultiAgentMLP(n_agent_inputs=obs_dim + embed, n_agent_outputs=hidden, depth=depth - 1,
                                   num_cells=hidden, activate_last_layer=True, **common)
         self.head = MultiAgentMLP(n_agent_inputs=hidden, n_agent_outputs=N_ACTION, depth=0, **common)
+        with torch.no_grad():  # near-zero initial actions (HEAD_INIT)
+            for name in ("weight", "bias"):
+                self.head.params["0", name].uniform_(-HEAD_INIT, HEAD_INIT)
 
     def features(self, local: torch.Tensor) -> torch.Tensor:
         """(N, K, hidden) per-agent embeddings of local observations (N, K, obs_dim).
