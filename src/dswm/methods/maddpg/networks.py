@@ -23,7 +23,8 @@ N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
 HEAD_INIT = 3e-3
 """The actor head's last layer starts uniform in +-HEAD_INIT (weights and bias), as DDPG's (Lillicrap et al. 2016,
-section 7), so that the untrained policy's outputs are near zero: it holds the fleet instead of drifting it."""
+section 7), so that the untrained policy's outputs are near zero: an active UAV stays about where it is instead of the
+fleet drifting one way every slot."""
 N_FLEET = 7
 """Fleet features per UAV (``dswm.sim.core.FLEET_FEATURES``)."""
 
@@ -96,7 +97,7 @@ class SharedActor(nn.Module):
     Both stages are ``torchrl.modules.MultiAgentMLP`` with shared parameters and no centralization (they hold the
     parameters and the state dict; :meth:`features` runs their layers over the agent axis); the body's last ReLU
     layer is the per-agent embedding whose spread across agents is monitored (a collapsed actor would give every
-    UAV the same features). The head starts near zero (:data:`HEAD_INIT`), so the untrained actor holds the fleet.
+    UAV the same features). The head starts near zero (:data:`HEAD_INIT`): the untrained actor barely moves.
     """
 
     def __init__(self, *, n_agents: int, obs_dim: int, embed: int, hidden: int, depth: int, crop: tuple[int, int],
