@@ -64,7 +64,8 @@ ENTRIES: dict[str, Entry] = {
     "sac": Entry(target="dswm.methods.rl.sb3:SACController", budget=sb3_budget, timing={"learning_starts": 0}, demo={
         "n_envs": 4, "day_episodes": 40, "net_arch": [128, 128], "learning_rate": 3.0e-4, "gamma": 0.99,
         "batch_size": 128, "checkpoint_every": 5, "buffer_size": 6000, "learning_starts": 572, "tau": 0.005,
-        "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True}),
+        "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True,
+        "matmul_dtype": "bfloat16"}),
     "maddpg": Entry(target="dswm.methods.maddpg:MADDPGController", budget=lambda o, rounds: maddpg_budget(o, rounds),
                     demo={}, timing={"warmup": 143}),
     "tdmpc": Entry(target="dswm.methods.tdmpc:TDMPCController", budget=lambda o, rounds: tdmpc_budget(o, rounds),

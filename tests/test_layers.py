@@ -60,12 +60,12 @@ def test_the_check_sees_an_upward_import(tmp_path):
 SHARED_METHOD_MODULES = {
     # the shared layer of dswm.methods: every method may import these; they import no method
     "dswm.methods", "dswm.methods.base", "dswm.methods.registry", "dswm.methods.trained", "dswm.methods.search",
-    "dswm.methods.snapshots", "dswm.methods.collect", "dswm.methods.replay",
+    "dswm.methods.snapshots", "dswm.methods.collect", "dswm.methods.replay", "dswm.methods.matmul",
     # the classical baselines double as building blocks: BatchedController (INS-WOA), the greedy pre-collection
     "dswm.methods.classical",
     # the RL infrastructure; its one method module, dswm.methods.rl.sb3 (ppo, sac), is not shared
     "dswm.methods.rl", "dswm.methods.rl.spaces", "dswm.methods.rl.vec_env", "dswm.methods.rl.logger",
-    "dswm.methods.rl.common",
+    "dswm.methods.rl.common", "dswm.methods.rl.sac_train",
 }
 
 

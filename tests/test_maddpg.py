@@ -11,8 +11,8 @@ from pettingzoo.test import parallel_api_test
 from dswm.config import ConfigError
 from dswm.methods.maddpg import MADDPGController, MADDPGSettings
 from dswm.methods.maddpg.learner import Inputs, Learner
-from dswm.methods.maddpg.networks import (CentralCritic, agent_spread, joint_observation, local_dim,
-                                          local_observation, scale_demand)
+from dswm.methods.maddpg.networks import (HEAD_INIT, CentralCritic, SharedActor, agent_spread, joint_observation,
+                                          local_dim, local_observation, scale_demand)
 from dswm.methods.maddpg.replay import window_maps
 from dswm.methods.maddpg.training import Trainer, parallel_env
 from dswm.methods.trained import day_schedule
@@ -23,7 +23,7 @@ from learner_checks import core, scenario3  # noqa: F401 (fixtures)
 SMALL = MADDPGSettings(crop_radius=1, index_embed=4, actor_hidden=16, actor_depth=2, critic_hidden=32, critic_depth=2,
                        actor_lr=1e-3, critic_lr=1e-3, gamma=0.5, tau=0.05, noise_std=0.2, action_reg=1e-3,
                        grad_clip=1.0, buffer_size=1000, batch_size=32, warmup=100, transitions=2 * 143,
-                       update_every=1, gradient_steps=2, log_points=10, checkpoint_every=1)
+                       update_every=1, gradient_steps=2, log_points=10, checkpoint_every=1, matmul_dtype="float32")
 QUICK = dataclasses.replace(SMALL, transitions=143, gradient_steps=1)  # one day-episode, 44 gradient steps
 
 
@@ -68,7 +68,7 @@ def test_local_observation_crops_around_the_uav_and_counts_the_others():
     time = torch.tensor([[0.25, -0.5]])
     out = local_observation(maps, fleet, time, r)
     assert out.shape == (1, 3, local_dim(2, r)) == (1, 3, 3 * 9 + 9)
-    crop = out[0, :, :27].reshape(3, 3, 3, 3)  # (agent, channel, row, col)
+    crop = out[0, :, :27].reshape(3, 3, 3, 3).permute(0, 3, 1, 2)  # (agent, row, col, channel) -> channel first
     # UAV 0 at the south-west corner: row -1 and col -1 are outside (zeros); map 0 rows 0..1, cols 0..1
     assert crop[0, 0].tolist() == [[0, 0, 0], [0, 0, 1], [0, 5, 6]]
     assert crop[0, 1].tolist() == [[0, 0, 0], [0, 20, 21], [0, 25, 26]]
@@ -100,6 +100,114 @@ def test_substituted_q_replaces_exactly_one_agents_action():
         ai[:, i] = new[:, i]
         torch.testing.assert_close(q[:, i], critic(x, ai))
     assert not torch.allclose(q[:, 0], critic(x, a))
+
+
+def indexed_local_observation(maps, fleet, time, radius):
+    """The local observation by advanced indexing of the permuted padded maps (the reference of the windows)."""
+    n, _, rows, cols = maps.shape
+    k, side = fleet.shape[1], 2 * radius + 1
+    col = torch.clamp((fleet[..., 0] * cols).floor().long(), 0, cols - 1)
+    row = torch.clamp((fleet[..., 1] * rows).floor().long(), 0, rows - 1)
+    active = fleet[..., 3]
+    occupancy = torch.zeros(n, rows * cols).scatter_add_(1, row * cols + col, active)
+    channels = torch.cat([maps, occupancy.view(n, 1, rows, cols)], dim=1)
+    padded = torch.nn.functional.pad(channels, (radius,) * 4).permute(0, 2, 3, 1)
+    offs = torch.arange(side)
+    crop = padded[torch.arange(n).view(n, 1, 1, 1), (row.unsqueeze(-1) + offs).unsqueeze(-1),
+                  (col.unsqueeze(-1) + offs).unsqueeze(-2)]  # (N, K, S, S, w+2)
+    crop[:, :, radius, radius, -1] -= active
+    crop = crop.reshape(n, k, -1)
+    return torch.cat([crop, fleet, time.unsqueeze(1).expand(n, k, 2)], dim=-1)
+
+
+def test_local_observation_equals_the_indexed_crops_exactly():
+    gen = torch.Generator().manual_seed(0)
+    n, k, rows, cols, radius = 5, 6, 7, 8, 2
+    maps = torch.rand((n, 3, rows, cols), generator=gen)
+    fleet = torch.rand((n, k, 7), generator=gen)
+    fleet[..., 3] = (torch.rand((n, k), generator=gen) > 0.3).float()
+    fleet[0, :, :2] = 0.999  # every UAV of day 0 in the north-east corner cell: crops cut by the border, counted
+    time = torch.rand((n, 2), generator=gen)
+    out = local_observation(maps, fleet, time, radius)
+    assert out.shape == (n, k, local_dim(3, radius))
+    assert torch.equal(out, indexed_local_observation(maps, fleet, time, radius))
+
+
+def test_shared_actor_runs_the_layers_of_its_multiagent_mlps():
+    """SharedActor's split first layer (channels-last crop part + per-agent embedding part) gives what its torchrl
+    MultiAgentMLPs give on the concatenated input with the crop channels first (the weight's order)."""
+    torch.manual_seed(0)
+    actor = SharedActor(n_agents=4, obs_dim=2 * 9 + 2, embed=3, hidden=8, depth=3, crop=(2, 3))
+    local = torch.randn(5, 4, 20)
+    channels_first = torch.cat([local[..., :18].unflatten(-1, (3, 3, 2)).permute(0, 1, 4, 2, 3).flatten(2),
+                                local[..., 18:]], dim=-1)
+    feats = actor.body(torch.cat([channels_first, actor.index.weight.expand(5, -1, -1)], dim=-1))
+    pre, got = actor(local)
+    torch.testing.assert_close(got, feats)
+    torch.testing.assert_close(pre, actor.head(feats))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_untrained_actors_actions_are_near_zero(core, seed):
+    """The actor head's last layer starts uniform in +-HEAD_INIT (Lillicrap et al. 2016, section 7): at the paper's
+    actor sizes the untrained deterministic actions, on a day of observations, are all within 0.02 of zero (with
+    the default init the largest was 0.11-0.20 over seeds 0-4, 0.004 at most with this one)."""
+    paper_actor = dataclasses.replace(QUICK, crop_radius=3, index_embed=8, actor_hidden=64, actor_depth=2,
+                                      warmup=10 ** 6)
+    trainer = Trainer(core=core, settings=paper_actor, seed=seed)
+    head = trainer.learner.actor.head.params["0"]
+    assert head["weight"].shape == (3, 64) and head["bias"].shape == (3,)
+    assert max(head["weight"].abs().max(), head["bias"].abs().max()) <= HEAD_INIT  # the default's bound: 1 / 8
+    trainer.run_episode()  # uniform random actions: the fleet and the demand a day visits
+    x = trainer.learner.inputs(trainer.replay.take(torch.arange(143)), trainer.maps)
+    with torch.no_grad():
+        actions = torch.tanh(trainer.learner.actor(x.local)[0])
+    assert actions.shape == (143, 3, 3)
+    assert actions.abs().max() < 0.02
+
+
+def test_bfloat16_inputs_are_the_float32_inputs_rounded_once():
+    """Learner.inputs in bfloat16 reads the maps rounded once; every observation equals the float32 one rounded."""
+    gen = torch.Generator().manual_seed(0)
+    days, rows, cols, k, n = 2, 6, 6, 4, 32
+    maps = torch.rand((days, 144, rows, cols), generator=gen) * 3
+    batch = {"day": torch.randint(0, days, (n,), generator=gen), "slot": torch.randint(0, 143, (n,), generator=gen),
+             "fleet": torch.rand((n, k, 7), generator=gen), "time": torch.rand((n, 2), generator=gen),
+             "action": torch.rand((n, k, 3), generator=gen), "reward": torch.rand(n, generator=gen),
+             "terminated": torch.zeros(n, dtype=torch.bool), "truncated": torch.zeros(n, dtype=torch.bool),
+             "next_fleet": torch.rand((n, k, 7), generator=gen), "next_time": torch.rand((n, 2), generator=gen)}
+    for name in ("fleet", "next_fleet"):  # the active flag is 0 or 1: the occupancy counts are exact
+        batch[name][..., 3] = (batch[name][..., 3] > 0.3).float()
+    got = {}
+    for dtype in ("float32", "bfloat16"):
+        learner = Learner(settings=dataclasses.replace(SMALL, matmul_dtype=dtype), rows=rows, cols=cols, maps=3,
+                          n_agents=k)
+        got[dtype] = learner.inputs(batch, maps)
+    for name in ("local", "joint", "next_local", "next_joint"):
+        full, half = getattr(got["float32"], name), getattr(got["bfloat16"], name)
+        assert full.dtype == torch.float32 and torch.equal(half, full.to(torch.bfloat16)), name
+
+
+def test_bfloat16_products_keep_a_gradient_step_close_to_float32():
+    """The same learner, batch and random state with float32 and with bfloat16 products: the step's losses and
+    mean Q within 2 %, and not identical (the bfloat16 products were used)."""
+    maps, rows, cols, k, n = 3, 6, 6, 4, 64
+    gen = torch.Generator().manual_seed(0)
+    x = Inputs(local=torch.rand((n, k, local_dim(maps, 1)), generator=gen),
+               joint=torch.rand((n, maps * rows * cols + 7 * k + 2), generator=gen),
+               action=torch.rand((n, k, 3), generator=gen) * 2 - 1, reward=torch.rand(n, generator=gen),
+               terminated=torch.zeros(n), next_local=torch.rand((n, k, local_dim(maps, 1)), generator=gen),
+               next_joint=torch.rand((n, maps * rows * cols + 7 * k + 2), generator=gen))
+    metrics = {}
+    for dtype in ("float32", "bfloat16"):
+        torch.manual_seed(0)
+        learner = Learner(settings=dataclasses.replace(SMALL, matmul_dtype=dtype), rows=rows, cols=cols, maps=maps,
+                          n_agents=k)
+        metrics[dtype] = [learner.update(x) for _ in range(3)]
+    for want, got in zip(metrics["float32"], metrics["bfloat16"], strict=True):
+        assert {key: got[key] for key in ("critic", "actor", "q")} == pytest.approx(
+            {key: want[key] for key in ("critic", "actor", "q")}, rel=0.02)
+    assert metrics["bfloat16"][0]["critic"] != metrics["float32"][0]["critic"]
 
 
 def test_agent_spread_is_zero_for_identical_agents():

@@ -1,6 +1,7 @@
 """Model-free RL with SB3 (ppo, sac): the API checkers of the Gymnasium and PettingZoo views, the flat
 observation, FleetVecEnv's VecEnv contract, learning (losses on fixed batches), checkpoints that resume exactly,
 TD targets that bootstrap at the day's truncation, actions, the manifest's days and seeds."""
+import copy
 import dataclasses
 import warnings
 
@@ -10,14 +11,17 @@ import torch
 import torch.nn.functional as F
 from pettingzoo.test import parallel_api_test
 from stable_baselines3 import PPO
+from stable_baselines3 import SAC as SB3SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_checker import check_env
+from stable_baselines3.common.logger import configure
 
 from dswm.config import ConfigError
 from dswm.methods.base import DayContext
 from dswm.methods.rl.spaces import (FlatFleetEnv, flat_action, flat_observation, fleet_action, observation_dim,
                                     observation_space)
 from dswm.methods.rl.vec_env import FleetVecEnv
+from dswm.methods.rl.sac_train import SAC
 from dswm.methods.rl.sb3 import CHECKPOINT, PPOController, SACController
 from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs, initial_positions
 from dswm.sim.env import UAVFleetEnv, UAVFleetParallelEnv, synthetic_demand
@@ -35,7 +39,8 @@ PPO_OPTIONS = {"n_envs": 2, "day_episodes": 4, "net_arch": [32, 32], "learning_r
                "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5, "log_std_init": -0.5}
 SAC_OPTIONS = {"n_envs": 2, "day_episodes": 4, "net_arch": [32, 32], "learning_rate": 1.0e-3, "gamma": 0.9,
                "batch_size": 64, "checkpoint_every": 1, "buffer_size": 3000, "learning_starts": 100, "tau": 0.05,
-               "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True}
+               "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True,
+               "matmul_dtype": "float32"}
 METHODS = {"ppo": (PPOController, PPO_OPTIONS), "sac": (SACController, SAC_OPTIONS)}
 
 
@@ -358,3 +363,46 @@ def test_settings_name_the_bad_key(small, tmp_path):
         controller("sac", net_arch=[])
     with pytest.raises(ConfigError, match=r"methods\.ppo\.batch_size.*286"):
         controller("ppo", batch_size=100).fit(make_core(small), run_dir=tmp_path)
+
+
+# ----------------------------------------------------------------------------------- the leaner SAC step
+
+def sac_losses_after_steps(model, n: int) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
+    """The logged mean losses of ``n`` gradient steps from fixed random draws, and the policy's weights after."""
+    model.set_logger(configure(None, []))
+    np.random.seed(1)
+    torch.manual_seed(1)
+    model.train(gradient_steps=n, batch_size=64)
+    losses = {k: float(model.logger.name_to_value[f"train/{k}"]) for k in ("critic_loss", "actor_loss", "ent_coef")}
+    return losses, {k: v.detach().clone() for k, v in model.policy.state_dict().items()}
+
+
+def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small):
+    """dswm's SAC (dswm.methods.rl.sac_train) against stable_baselines3.SAC's own train() from the same weights,
+    replay buffer and random draws: bit-identical losses and weights in float32; with bfloat16 products the
+    losses within 2 %."""
+    torch.set_num_threads(1)
+    kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
+    kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class")
+
+    def build(cls, **extra):
+        return cls("MlpPolicy", FleetVecEnv(make_core(small), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
+                   **kwargs, **extra)
+
+    reference = build(SB3SAC)
+    reference.learn(total_timesteps=2 * HORIZON)  # fills the buffer with random actions, no gradient step
+    assert reference._n_updates == 0 and reference.replay_buffer.size() == HORIZON
+    runs = {}
+    for dtype in ("float32", "bfloat16"):
+        fast = build(SAC, matmul_dtype=dtype)
+        fast.policy.load_state_dict(reference.policy.state_dict())
+        fast.replay_buffer = copy.deepcopy(reference.replay_buffer)
+        runs[dtype] = sac_losses_after_steps(fast, 3)
+    want, want_weights = sac_losses_after_steps(reference, 3)
+    got, got_weights = runs["float32"]
+    assert got == want
+    assert want_weights.keys() == got_weights.keys()
+    assert all(torch.equal(got_weights[name], value) for name, value in want_weights.items())
+    half, _ = runs["bfloat16"]
+    assert half == pytest.approx(want, rel=0.02)
+    assert half["critic_loss"] != want["critic_loss"]  # the bfloat16 products were used

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = MADDPGSettings(crop_radius=1, index_embed=4, actor_hidden=16, actor_depth=2, critic_hidden=32, critic_depth=2,
                       actor_lr=1e-3, critic_lr=1e-3, gamma=0.5, tau=0.05, noise_std=0.2, action_reg=1e-3,
                       grad_clip=1.0, buffer_size=1000, batch_size=32, warmup=200, transitions=2 * 143,
-                      update_every=2, gradient_steps=1, log_points=10, checkpoint_every=1)
+                      update_every=2, gradient_steps=1, log_points=10, checkpoint_every=1, matmul_dtype="float32")
 FRACTIONS = (0.25, 0.5, 1.0)
 
 

@@ -120,6 +120,25 @@ def test_the_builder_refuses_what_the_schema_refuses_naming_the_key(config, meth
     assert re.fullmatch(rf"config key methods\.{method}\.{key}: expected an integer >= 1, found 0", str(err.value))
 
 
+@pytest.mark.parametrize("method", ["sac", "maddpg"])
+def test_a_matmul_dtype_outside_its_literal_is_refused_by_the_schema_the_builder_and_in_code(config, method):
+    bad = copy.deepcopy(config)
+    bad["methods"][method]["matmul_dtype"] = "float16"
+    with pytest.raises(ConfigError) as err:
+        S.validate_config(bad, SCHEMA)
+    assert str(err.value).split("\n")[1:] == [
+        f"config.yaml: key 'methods.{method}.matmul_dtype' must be float32 or bfloat16; found 'float16'"]
+    cls = settings_class(method)
+    merged, where = with_budget(config["methods"][method], "smoke", f"methods.{method}")
+    with pytest.raises(ConfigError) as err:
+        build(cls, {**merged, "matmul_dtype": "float16"}, where)
+    assert str(err.value) == (f"config key {where}.matmul_dtype: expected one of ['float32', 'bfloat16'], "
+                              f"found 'float16'")
+    with pytest.raises(ConfigError) as err:                          # made in code: the field's ENUM constraint
+        dataclasses.replace(build(cls, merged, where), matmul_dtype="float16")
+    assert str(err.value) == f"config key methods.{method}.matmul_dtype: expected float32 or bfloat16, found 'float16'"
+
+
 def test_no_setting_of_a_generated_method_is_written_in_the_schema_file():
     text = S.SCHEMA.read_text()
     methods_raw = RAW["properties"]["methods"]

@@ -10,6 +10,8 @@ Per gradient step, on a replayed batch of joint transitions (x, a, r, x'):
 3. Targets: Polyak averaging with rate tau.
 
 The team reward is shared, so the K critics Q_i of the paper have identical targets; they are one network here.
+Every network computes its matrix products in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the optimizers are
+torch's fused Adam, the Polyak step one ``torch._foreach_lerp_`` per network.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from dswm.methods.maddpg.networks import (CentralCritic, SharedActor, agent_spre
                                           local_dim, local_observation, scale_demand)
 from dswm.methods.maddpg.replay import window_maps
 from dswm.methods.maddpg.settings import MADDPGSettings
+from dswm.methods.matmul import MATMUL_DTYPES
 
 
 class Inputs(NamedTuple):
@@ -49,15 +52,21 @@ class Learner:
                  device: str = "cpu"):
         self.settings, self.maps, self.device = settings, maps, torch.device(device)
         s = settings
+        self.dtype = MATMUL_DTYPES[s.matmul_dtype]
         self.actor = SharedActor(n_agents=n_agents, obs_dim=local_dim(maps, s.crop_radius), embed=s.index_embed,
-                                 hidden=s.actor_hidden, depth=s.actor_depth).to(self.device)
+                                 hidden=s.actor_hidden, depth=s.actor_depth, crop=(maps + 1, 2 * s.crop_radius + 1),
+                                 matmul_dtype=s.matmul_dtype).to(self.device)
         self.critic = CentralCritic(obs_dim=joint_dim(maps, rows, cols, n_agents), n_agents=n_agents,
-                                    hidden=s.critic_hidden, depth=s.critic_depth).to(self.device)
+                                    hidden=s.critic_hidden, depth=s.critic_depth, matmul_dtype=s.matmul_dtype
+                                    ).to(self.device)
         self.target_actor = copy.deepcopy(self.actor).requires_grad_(False)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=s.actor_lr)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=s.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=s.actor_lr, fused=True)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=s.critic_lr, fused=True)
+        self._polyak = [(list(net.parameters()), list(target.parameters()))
+                        for net, target in ((self.actor, self.target_actor), (self.critic, self.target_critic))]
         self.steps = 0
+        self._maps: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ---- acting ------------------------------------------------------------------------------------------
     def local(self, maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
@@ -74,15 +83,19 @@ class Learner:
     # ---- gradient step -----------------------------------------------------------------------------------
     def inputs(self, batch: dict[str, torch.Tensor], maps: torch.Tensor) -> Inputs:
         """A replayed batch (``Replay.sample``) with its windows read from ``maps`` (D, T, R, C), the training
-        days' SCALED demand (``networks.scale_demand``)."""
+        days' SCALED demand (``networks.scale_demand``); the observations in the products' dtype (they enter the
+        networks' first layers only)."""
         b = {k: v.to(self.device) for k, v in batch.items()}
+        if self._maps is None or self._maps[0] is not maps:  # rounded once to the products' dtype, as they would be
+            self._maps = (maps, maps.to(self.dtype))
+        maps = self._maps[1]
         now = window_maps(maps, b["day"], b["slot"], self.maps)
         nxt = window_maps(maps, b["day"], b["slot"] + 1, self.maps)
-        return Inputs(local=self.local(now, b["fleet"], b["time"]),
-                      joint=joint_observation(now, b["fleet"], b["time"]), action=b["action"],
+        return Inputs(local=self.local(now, b["fleet"], b["time"]).to(self.dtype),
+                      joint=joint_observation(now, b["fleet"], b["time"]).to(self.dtype), action=b["action"],
                       reward=b["reward"], terminated=b["terminated"].float(),
-                      next_local=self.local(nxt, b["next_fleet"], b["next_time"]),
-                      next_joint=joint_observation(nxt, b["next_fleet"], b["next_time"]))
+                      next_local=self.local(nxt, b["next_fleet"], b["next_time"]).to(self.dtype),
+                      next_joint=joint_observation(nxt, b["next_fleet"], b["next_time"]).to(self.dtype))
 
     @torch.no_grad()
     def td_target(self, x: Inputs) -> torch.Tensor:
@@ -106,7 +119,7 @@ class Learner:
         critic_loss = torch.mean((q - self.td_target(x)) ** 2)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), s.grad_clip)
+        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), s.grad_clip, foreach=True)
         self.critic_opt.step()
         # Actor: agent i's action from the current policy, the others' from the replay
         pre, feats = self.actor(x.local)
@@ -116,13 +129,12 @@ class Learner:
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.critic.requires_grad_(True)
-        torch.nn.utils.clip_grad_norm_(self.actor.parameters(), s.grad_clip)
+        torch.nn.utils.clip_grad_norm_(self.actor.parameters(), s.grad_clip, foreach=True)
         self.actor_opt.step()
         # Targets
         with torch.no_grad():
-            for net, target in ((self.actor, self.target_actor), (self.critic, self.target_critic)):
-                for p, tp in zip(net.parameters(), target.parameters(), strict=True):
-                    tp.lerp_(p, s.tau)
+            for params, targets in self._polyak:
+                torch._foreach_lerp_(targets, params, s.tau)
         self.steps += 1
         return {"critic": critic_loss.item(), "actor": actor_loss.item(), "q": q.detach().mean().item(),
                 "spread": agent_spread(feats.detach()).item()}

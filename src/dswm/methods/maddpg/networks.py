@@ -17,8 +17,14 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from dswm.methods.matmul import MATMUL_DTYPES, linear, set_matmul_dtype
+
 N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
+HEAD_INIT = 3e-3
+"""The actor head's last layer starts uniform in +-HEAD_INIT (weights and bias), as DDPG's (Lillicrap et al. 2016,
+section 7), so that the untrained policy's outputs are near zero: an active UAV stays about where it is instead of the
+fleet drifting one way every slot."""
 N_FLEET = 7
 """Fleet features per UAV (``dswm.sim.core.FLEET_FEATURES``)."""
 
@@ -55,26 +61,28 @@ def local_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tenso
         radius: crop half-width r in cells.
 
     Returns:
-        (N, K, local_dim(w+1, r)) float32: the crop (channels, rows, cols) flattened, then fleet_k, then time.
+        (N, K, local_dim(w+1, r)) in the dtype of ``maps``: the crop (rows, cols, channels) flattened, then fleet_k,
+        then time
+        (channels last, so that each crop row is one contiguous copy; :class:`SharedActor` orders its weight so).
     """
-    n, _, rows, cols = maps.shape
+    n, m, rows, cols = maps.shape
     k = fleet.shape[1]
-    side = 2 * radius + 1
+    side, ch, pr, pc = 2 * radius + 1, m + 1, rows + 2 * radius, cols + 2 * radius
     row, col = cells_of(fleet, rows, cols)
-    active = fleet[..., 3]
-    # Occupancy: active UAVs per cell (N, R, C); each UAV later removes itself from the centre of its crop.
-    occupancy = torch.zeros(n, rows * cols, dtype=maps.dtype, device=maps.device)
-    occupancy.scatter_add_(1, row * cols + col, active.to(maps.dtype))
-    channels = torch.cat([maps, occupancy.view(n, 1, rows, cols)], dim=1)  # (N, w+2, R, C)
-    padded = nn.functional.pad(channels, (radius, radius, radius, radius)).permute(0, 2, 3, 1)  # (N, R+2r, C+2r, w+2)
-    offs = torch.arange(side, device=maps.device)
-    rr = (row.unsqueeze(-1) + offs).unsqueeze(-1)  # (N, K, S, 1) padded row of each crop row
-    cc = (col.unsqueeze(-1) + offs).unsqueeze(-2)  # (N, K, 1, S)
-    batch = torch.arange(n, device=maps.device).view(n, 1, 1, 1)
-    crop = padded[batch, rr, cc]  # (N, K, S, S, w+2)
-    crop[:, :, radius, radius, -1] -= active.to(crop.dtype)
-    crop = crop.permute(0, 1, 4, 2, 3).reshape(n, k, -1)
-    return torch.cat([crop, fleet, time.unsqueeze(1).expand(n, k, time.shape[-1])], dim=-1)
+    active = fleet[..., 3].to(maps.dtype)
+    # Channels-last maps padded with r zero cells: the w+1 maps, then the active UAVs per cell (occupancy)
+    padded = torch.zeros(n, pr, pc, ch, dtype=maps.dtype, device=maps.device)
+    padded[:, radius:radius + rows, radius:radius + cols, :m] = maps.permute(0, 2, 3, 1)
+    occupancy = torch.zeros(n, pr * pc, dtype=maps.dtype, device=maps.device)
+    occupancy.scatter_add_(1, (row + radius) * pc + col + radius, active)
+    padded[..., m] = occupancy.view(n, pr, pc)
+    # Every S x S window as a view indexed by its top-left corner, which is the UAV's own cell; a window's row is
+    # S cells x (w+2) channels contiguous
+    windows = padded.as_strided((n, rows, cols, side, side * ch), (pr * pc * ch, pc * ch, ch, pc * ch, 1))
+    crop = windows[torch.arange(n, device=maps.device).unsqueeze(1), row, col].view(n, k, -1)  # (N, K, S S (w+2))
+    crop[..., (radius * side + radius) * ch + m] -= active  # each UAV removes itself from its own cell's count
+    return torch.cat([crop, fleet.to(crop.dtype), time.to(crop.dtype).unsqueeze(1).expand(n, k, time.shape[-1])],
+                     dim=-1)
 
 
 def joint_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
@@ -86,14 +94,17 @@ def joint_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tenso
 class SharedActor(nn.Module):
     """One actor for every UAV: [local observation, index embedding] -> hidden features -> 3 pre-tanh outputs.
 
-    Both stages are ``torchrl.modules.MultiAgentMLP`` with shared parameters and no centralization, applied
-    over the agent axis; the body's last ReLU layer is the per-agent embedding whose spread across agents is
-    monitored (a collapsed actor would give every UAV the same features).
+    Both stages are ``torchrl.modules.MultiAgentMLP`` with shared parameters and no centralization (they hold the
+    parameters and the state dict; :meth:`features` runs their layers over the agent axis); the body's last ReLU
+    layer is the per-agent embedding whose spread across agents is monitored (a collapsed actor would give every
+    UAV the same features). The head starts near zero (:data:`HEAD_INIT`): the untrained actor barely moves.
     """
 
-    def __init__(self, *, n_agents: int, obs_dim: int, embed: int, hidden: int, depth: int):
+    def __init__(self, *, n_agents: int, obs_dim: int, embed: int, hidden: int, depth: int, crop: tuple[int, int],
+                 matmul_dtype: str = "float32"):
         super().__init__()
-        self.n_agents = n_agents
+        self.n_agents, self.depth, self.dtype = n_agents, depth, MATMUL_DTYPES[matmul_dtype]
+        self.crop = crop
         self.index = nn.Embedding(n_agents, embed)
         # torchrl is imported here, not with the module: reading MADDPG's settings (every workflow parse) needs none
         from torchrl.modules import MultiAgentMLP
@@ -102,16 +113,35 @@ class SharedActor(nn.Module):
         self.body = MultiAgentMLP(n_agent_inputs=obs_dim + embed, n_agent_outputs=hidden, depth=depth - 1,
                                   num_cells=hidden, activate_last_layer=True, **common)
         self.head = MultiAgentMLP(n_agent_inputs=hidden, n_agent_outputs=N_ACTION, depth=0, **common)
+        with torch.no_grad():  # near-zero initial actions (HEAD_INIT)
+            for name in ("weight", "bias"):
+                self.head.params["0", name].uniform_(-HEAD_INIT, HEAD_INIT)
 
     def features(self, local: torch.Tensor) -> torch.Tensor:
-        """(N, K, hidden) per-agent embeddings of local observations (N, K, obs_dim)."""
-        idx = self.index.weight.unsqueeze(0).expand(local.shape[0], -1, -1)
-        return self.body(torch.cat([local, idx], dim=-1))
+        """(N, K, hidden) per-agent embeddings of local observations (N, K, obs_dim).
+
+        The body's layers run on its (shared) parameters directly: its first layer takes [local, index embedding]
+        as W_o local + W_e e_k + b, so the embedding's part is computed once per agent, not once per row. Its crop
+        columns are stored in (channels, rows, cols) order and permuted to the local view's channels-last order
+        (``crop`` = (channels, side)).
+        """
+        p = self.body.params
+        weight, d = p["0", "weight"], local.shape[-1]
+        channels, side = self.crop
+        width = channels * side * side
+        # The weight's crop columns are kept in (channels, rows, cols) order; the local crop is channels last
+        crop = weight[:, :width].unflatten(1, (channels, side, side)).permute(0, 2, 3, 1).flatten(1)
+        local_weight = torch.cat([crop, weight[:, width:d]], dim=1)
+        per_agent = linear(self.index.weight, weight[:, d:], p["0", "bias"], self.dtype)  # (K, hidden)
+        h = torch.relu(linear(local, local_weight, None, self.dtype) + per_agent)
+        for i in range(2, 2 * self.depth, 2):
+            h = torch.relu(linear(h, p[str(i), "weight"], p[str(i), "bias"], self.dtype))
+        return h
 
     def forward(self, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-tanh outputs (N, K, 3) and the features (N, K, hidden); the action is tanh of the first."""
         feats = self.features(local)
-        return self.head(feats), feats
+        return linear(feats, self.head.params["0", "weight"], self.head.params["0", "bias"], self.dtype), feats
 
 
 def agent_spread(features: torch.Tensor) -> torch.Tensor:
@@ -127,7 +157,7 @@ class CentralCritic(nn.Module):
     actor objective, :meth:`substituted`) costs one small matrix product per agent instead of a full pass.
     """
 
-    def __init__(self, *, obs_dim: int, n_agents: int, hidden: int, depth: int):
+    def __init__(self, *, obs_dim: int, n_agents: int, hidden: int, depth: int, matmul_dtype: str = "float32"):
         super().__init__()
         self.n_agents = n_agents
         self.obs_in = nn.Linear(obs_dim, hidden)
@@ -136,6 +166,7 @@ class CentralCritic(nn.Module):
         for _ in range(depth - 1):
             layers += [nn.ReLU(), nn.Linear(hidden, hidden)]
         self.trunk = nn.Sequential(*layers, nn.ReLU(), nn.Linear(hidden, 1))
+        set_matmul_dtype(self, matmul_dtype)
 
     def forward(self, x: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """(N,) Q of joint observations (N, D) and joint actions (N, K, 3)."""
@@ -148,6 +179,10 @@ class CentralCritic(nn.Module):
             x: (N, D) joint observations; action: (N, K, 3) replayed joint actions; new: (N, K, 3).
         """
         base = self.obs_in(x) + self.act_in(action.flatten(1))  # (N, H)
-        weight = self.act_in.weight.view(-1, self.n_agents, N_ACTION)  # (H, K, 3)
-        delta = torch.einsum("nka,hka->nkh", new - action, weight)  # (N, K, H)
-        return self.trunk(base.unsqueeze(1) + delta).squeeze(-1)
+        n, k, _ = action.shape
+        weight = self.act_in.weight.view(-1, self.n_agents, N_ACTION).permute(2, 1, 0).contiguous()  # (3, K, H)
+        change = new - action  # (N, K, 3)
+        h = base.unsqueeze(1) + change[..., 0, None] * weight[0]  # (N, K, H), contiguous
+        for a in range(1, N_ACTION):
+            h = h + change[..., a, None] * weight[a]
+        return self.trunk(h.reshape(n * k, -1)).view(n, k)

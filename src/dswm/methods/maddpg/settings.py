@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from dswm.config import ConfigError, check_fields, setting
+from dswm.config import ENUM, ConfigError, check_fields, setting
+from dswm.methods.matmul import MatmulDtype
 
 ARCHITECTURE_KEYS = ("crop_radius", "index_embed", "actor_hidden", "actor_depth", "critic_hidden", "critic_depth")
 """The settings that shape the networks: a model file is loaded only under the same values."""
@@ -55,6 +56,8 @@ class MADDPGSettings:
     """Most entries of the training history (each the mean over a window of day-episodes)."""
     checkpoint_every: int = setting("count")
     """Day-episodes between two checkpoints (one is also written at the end)."""
+    matmul_dtype: MatmulDtype = setting(ENUM)
+    """The dtype of the networks' matrix products, float32 everything else (:mod:`dswm.methods.matmul`)."""
 
     def __post_init__(self):
         where = "methods.maddpg"

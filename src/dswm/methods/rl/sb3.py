@@ -36,13 +36,15 @@ from typing import Any, ClassVar, Mapping, Sequence
 import numpy as np
 import stable_baselines3
 import torch
-from stable_baselines3 import PPO, SAC
+from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from dswm.config import setting, stable_hash, to_plain
+from dswm.config import ENUM, setting, stable_hash, to_plain
 from dswm.methods.base import Controller, DayContext, training_inputs_hash
+from dswm.methods.matmul import MatmulDtype
 from dswm.methods.rl.common import DumpEachUpdate, PPOParams, SB3Params, rng_states, set_rng_states
 from dswm.methods.rl.logger import HistoryWriter, history_logger
+from dswm.methods.rl.sac_train import SAC, ReplayBuffer
 from dswm.methods.rl.spaces import DEMAND_TRANSFORM, fleet_action, flat_observation, observation_dim
 from dswm.methods.rl.vec_env import FleetVecEnv
 from prep.atomic import atomic_path
@@ -101,6 +103,8 @@ class SACSettings(SB3Settings):
     """Initial entropy coefficient."""
     auto_entropy: bool = setting("flag")
     """Learn the entropy coefficient towards SB3's target entropy -dim(action) (else keep ent_coef_init)."""
+    matmul_dtype: MatmulDtype = setting(ENUM)
+    """The dtype of the networks' matrix products, float32 everything else (:mod:`dswm.methods.matmul`)."""
 
     def __post_init__(self):
         super().__post_init__()
@@ -325,7 +329,8 @@ class PPOController(SB3Controller):
 
 
 class SACController(SB3Controller):
-    """SB3's SAC with a squashed-Gaussian MLP actor and two MLP critics."""
+    """SB3's SAC with a squashed-Gaussian MLP actor and two MLP critics (its gradient step made leaner:
+    :mod:`dswm.methods.rl.sac_train`)."""
 
     algorithm = SAC
     options_type = SACSettings
@@ -337,5 +342,6 @@ class SACController(SB3Controller):
                 "batch_size": s.batch_size, "tau": s.tau, "gamma": s.gamma, "train_freq": (s.train_freq, "step"),
                 "gradient_steps": s.gradient_steps,
                 "ent_coef": f"auto_{s.ent_coef_init}" if s.auto_entropy else s.ent_coef_init,
-                "optimize_memory_usage": False, "replay_buffer_kwargs": {"handle_timeout_termination": True},
-                "policy_kwargs": {"net_arch": {"pi": arch, "qf": list(arch)}}}
+                "optimize_memory_usage": False, "replay_buffer_class": ReplayBuffer,
+                "replay_buffer_kwargs": {"handle_timeout_termination": True}, "matmul_dtype": s.matmul_dtype,
+                "policy_kwargs": {"net_arch": {"pi": arch, "qf": list(arch)}, "optimizer_kwargs": {"fused": True}}}
