@@ -88,7 +88,8 @@ def test_a_cap_merges_over_the_profile_budget_and_a_bad_key_names_the_cap():
     job = S.learning_train_slice(settings, learning, "ppo")
     paper, _ = resolved(config("paper"))  # the issue: PPO's curve reaches its paper budget, 1,002,144 transitions
     assert job["method"]["options"]["day_episodes"] == paper.methods["ppo"].options.day_episodes == 7008
-    assert job["method"]["options"]["n_envs"] == settings.methods["ppo"].options.n_envs == 8  # the demo's own
+    assert job["method"]["options"]["n_envs"] == paper.methods["ppo"].options.n_envs == 16  # the cap's own
+    assert S.learning_train_slice(settings, learning, "sac")["method"]["options"]["n_envs"] == 4  # the demo's own
     assert S.learning_train_slice(settings, learning, "dswm")["method"]["options"]["steps"] == 3200
     bad = config("demo")
     bad["learning"]["budgets"]["demo"]["caps"]["ppo"] = {"day_episode": 10}
