@@ -213,7 +213,8 @@ def draw_learning_curves(table: pl.DataFrame, histories: pl.DataFrame, *, order:
 
 
 def _verdict_note(verdict: pl.DataFrame | None, method: str) -> str:
-    """' - learned at N transitions' (or gradient steps), ' - not learned at its cap', or '' (no verdict)."""
+    """' - learned at F of the cap (N transitions, M gradient steps)', ' - not learned at its cap', or '' (no
+    verdict)."""
     if verdict is None:
         return ""
     rows = verdict.filter(pl.col("method") == method)
@@ -222,7 +223,8 @@ def _verdict_note(verdict: pl.DataFrame | None, method: str) -> str:
     r = rows.row(0, named=True)
     if r["learned_at_fraction"] is None:
         return " - not learned at its cap"
-    return f" - learned at {r['learned_at_fraction']:g} of the cap ({r['learned_at_transitions']:,} transitions)"
+    return (f" - learned at {r['learned_at_fraction']:g} of the cap ({r['learned_at_transitions']:,} transitions, "
+            f"{r['learned_at_gradient_steps']:,} gradient steps)")
 
 
 def _draw_curve(ax, rows: pl.DataFrame, title: str) -> None:
