@@ -1,5 +1,6 @@
 """requirements.lock, the environment the README's install command and CI install, agrees with pyproject.toml: every
 requirement of the project and of the extras the lock covers is pinned there within its specifier, with hashes."""
+import hashlib
 import re
 import tomllib
 
@@ -111,3 +112,12 @@ def test_the_check_sees_each_disagreement():
         "pyproject.toml optional-dependencies.cluster: 'psycopg2-binary>=2.9' is not in the lock",
         "the lock pins pyyaml==6.0.4 without a hash"]
 
+
+def test_the_readme_installs_from_the_lock_and_names_the_lock_its_results_came_from():
+    readme = (ROOT / "README.md").read_text()
+    install = "pip install --require-hashes -r requirements.lock && pip install --no-deps -e ."
+    quickstart = readme.split("## Quickstart", 1)[1].split("\n## ", 1)[0]
+    assert quickstart.count(install) == 2
+    assert 'pip install -e ".[test]"' not in readme
+    results = " ".join(readme.split("## Results on the demo data", 1)[1].split("\n## ", 1)[0].split())
+    assert f"`requirements.lock` (SHA-256 {hashlib.sha256(LOCK.read_bytes()).hexdigest()})" in results
