@@ -41,4 +41,5 @@ grep -qE '^torch==[^ ]*\+cpu ' "$new" || {
 }
 chmod 644 "$new"
 mv "$new" requirements.lock
-echo "requirements.lock: $(grep -cE '^[A-Za-z0-9]' requirements.lock) packages, SHA-256 $(sha256sum requirements.lock | cut -d' ' -f1)"
+echo "requirements.lock: $(grep -cE '^[A-Za-z0-9]' requirements.lock) packages," \
+  "SHA-256 $(sha256sum requirements.lock | cut -d' ' -f1) (the README's results name the lock they came from by it)"

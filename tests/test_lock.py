@@ -1,7 +1,10 @@
 """requirements.lock, the environment the README's install command and CI install, agrees with pyproject.toml: every
 requirement of the project and of the extras the lock covers is pinned there within its specifier, with hashes."""
 import hashlib
+import os
 import re
+import shutil
+import subprocess
 import tomllib
 
 from packaging.requirements import Requirement
@@ -121,3 +124,44 @@ def test_the_readme_installs_from_the_lock_and_names_the_lock_its_results_came_f
     assert 'pip install -e ".[test]"' not in readme
     results = " ".join(readme.split("## Results on the demo data", 1)[1].split("\n## ", 1)[0].split())
     assert f"`requirements.lock` (SHA-256 {hashlib.sha256(LOCK.read_bytes()).hexdigest()})" in results
+
+
+def run_lock_script(tmp_path, new_lock: str) -> subprocess.CompletedProcess:
+    """scripts/lock.sh in a copy of the repository, with a stand-in pip-compile (in LOCK_TOOLS_VENV) that writes
+    ``new_lock`` to its --output-file and records its arguments: the script's own steps, without the registry."""
+    (tmp_path / "repo" / "scripts").mkdir(parents=True)
+    shutil.copy(LOCK_SCRIPT, tmp_path / "repo" / "scripts" / "lock.sh")
+    (tmp_path / "repo" / "requirements.lock").write_text("old lock\n")
+    (tmp_path / "tools" / "bin").mkdir(parents=True)
+    stub = tmp_path / "tools" / "bin" / "pip-compile"
+    stub.write_text('#!/usr/bin/env bash\necho "$@" > "$STUB_ARGS"\n'
+                    'while [ "$1" != --output-file ]; do shift; done\nprintf %s "$STUB_LOCK" > "$2"\n')
+    stub.chmod(0o755)
+    env = {**os.environ, "LOCK_TOOLS_VENV": str(tmp_path / "tools"), "STUB_LOCK": new_lock,
+           "STUB_ARGS": str(tmp_path / "args")}
+    return subprocess.run(["bash", str(tmp_path / "repo" / "scripts" / "lock.sh"), "-P", "numpy"], env=env,
+                          capture_output=True, text=True)
+
+
+def test_the_lock_script_replaces_the_lock_with_pip_compiles_output(tmp_path):
+    done = run_lock_script(tmp_path, FAKE_LOCK)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "repo" / "requirements.lock").read_text() == FAKE_LOCK
+    assert sorted(p.name for p in (tmp_path / "repo").iterdir()) == ["requirements.lock", "scripts"]
+    args = (tmp_path / "args").read_text().split()
+    assert args[:8] == ["--quiet", "--generate-hashes", "--allow-unsafe", "--strip-extras", "--extra", "test",
+                        "--no-emit-index-url", "--no-emit-find-links"]
+    assert args[-3:] == ["-P", "numpy", "pyproject.toml"]
+    assert done.stdout == (f"requirements.lock: 4 packages, SHA-256 {hashlib.sha256(FAKE_LOCK.encode()).hexdigest()}"
+                           " (the README's results name the lock they came from by it)\n")
+
+
+def test_the_lock_script_refuses_a_lock_without_torch_cpu_build_and_keeps_the_old_one(tmp_path):
+    done = run_lock_script(tmp_path, FAKE_LOCK.replace("torch==2.13.0+cpu", "torch==2.13.0"))
+    assert done.returncode == 1
+    assert done.stderr == (
+        "scripts/lock.sh: the new lock pins torch==2.13.0, not torch's CPU build (a version ending in +cpu); "
+        "requirements.lock is unchanged. Let pip find that wheel (--extra-index-url "
+        "https://download.pytorch.org/whl/cpu) and run again\n")
+    assert (tmp_path / "repo" / "requirements.lock").read_text() == "old lock\n"
+    assert sorted(p.name for p in (tmp_path / "repo").iterdir()) == ["requirements.lock", "scripts"]
