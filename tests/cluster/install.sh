@@ -40,5 +40,8 @@ else
   echo "SLURM, munge, MariaDB and PostgreSQL are installed"
 fi
 
-python3 -m pip install -q -e ".[test,cluster]"
+# The locked environment first (a no-op after the README's install), so the cluster extra adds its packages to it
+# without moving a pin.
+python3 -m pip install -q --require-hashes -r requirements.lock
+python3 -m pip install -q -e ".[cluster]"
 echo "cluster engines and the cluster extra are installed"
