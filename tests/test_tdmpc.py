@@ -1,5 +1,6 @@
 """TD-MPC: settings, rewards of the replay, TD targets at truncation, losses that fall, exact resumes, MPPI on toy
 problems, and the controller on small synthetic days (actions, D_max, the manifest's days, seeds)."""
+import copy
 import dataclasses
 
 import numpy as np
@@ -12,6 +13,7 @@ from dswm.methods.collect import collect
 from dswm.methods.search import SearchSettings
 from dswm.methods.tdmpc import learner as learner_mod
 from dswm.methods.tdmpc.agent import TDMPCController, project, round_bounds
+from dswm.methods.tdmpc.diagnose import one_step_rewards, rank_correlation, reward_ranking
 from dswm.methods.tdmpc.learner import Learner
 from dswm.methods.tdmpc.planner import MPPIConfig, mppi
 from dswm.methods.tdmpc.replay import TransitionReplay, episode_rewards
@@ -280,6 +282,50 @@ def test_mppi_warm_start_shifts_the_previous_mean():
                prev_mean=prev)
     expect = torch.cat([prev[:, 1:], torch.zeros(1, 1, 3)], 1)
     torch.testing.assert_close(res.mean, expect, atol=2e-3, rtol=0)
+
+
+# ----------------------------------------------------------------------------------- diagnostics
+
+def test_one_step_rewards_are_the_environments_and_leave_the_core_where_it_was(scn):
+    core = make_core(scn)
+    rng = np.random.default_rng(3)
+    core.reset([0, 2])
+    for _ in range(25):                              # far enough into the day that batteries and stations differ
+        core.step(rng.uniform(-1, 1, size=(2, scn.n_uavs, 3)).astype(np.float32))
+    cand = torch.as_tensor(rng.uniform(-1.5, 1.5, size=(6, scn.n_uavs, 3)), dtype=torch.float32)
+    got = one_step_rewards(core, 1, cand)
+    assert core.t == 25
+    for i in range(len(cand)):                       # each candidate stepped for real in a copy of the core
+        twin = copy.deepcopy(core)
+        a = np.zeros((2, scn.n_uavs, 3), dtype=np.float32)
+        a[1] = cand[i].numpy()
+        assert abs(float(got[i]) - float(twin.step(a).reward[1])) < 1e-6
+    assert float(got.max() - got.min()) > 0.01      # the candidates do differ
+
+
+def test_rank_correlation_and_the_ranking_of_an_exact_and_a_reversed_reward_model(scn):
+    assert rank_correlation([1, 2, 3, 4], [10, 20, 40, 30]) == pytest.approx(0.8)
+    core = make_core(scn)
+    obs = core.reset([0, 1])
+    rng = np.random.default_rng(4)
+    cand = torch.as_tensor(rng.uniform(-1, 1, size=(32, scn.n_uavs, 3)), dtype=torch.float32)
+    true = one_step_rewards(core, 1, cand)
+
+    class Stub:                                      # predicts the true reward times ``sign``
+        def __init__(self, sign):
+            self.sign = sign
+
+        def encode(self, demand, fleet, time):
+            return torch.zeros(demand.shape[0], 1)
+
+        def next(self, z, a):
+            return z, self.sign * one_step_rewards(core, 1, a.reshape(len(a), scn.n_uavs, 3))
+
+    exact, reversed_ = (reward_ranking(Stub(s), core, obs, 1, cand) for s in (1.0, -1.0))
+    assert exact.spearman == pytest.approx(1.0) and reversed_.spearman == pytest.approx(-1.0)
+    assert exact.chosen == pytest.approx(float(true.max())) == pytest.approx(exact.best)
+    assert reversed_.chosen == pytest.approx(float(true.min()))
+    assert exact.mean == pytest.approx(float(true.mean()))
 
 
 # ----------------------------------------------------------------------------------- the controller

@@ -8,6 +8,7 @@ in its latent space at decision time, closed by the learned value. docs/PROTOCOL
 * :mod:`.learner`: the losses, one gradient step, the target network.
 * :mod:`.planner`: MPPI.
 * :mod:`.agent`: training (pre-collection, own interaction, checkpoints) and the controller.
+* :mod:`.diagnose`: how the learned reward ranks candidate actions against the environment's own rewards.
 """
 from dswm.methods.tdmpc.agent import TDMPCController
 from dswm.methods.tdmpc.settings import TDMPCSettings
