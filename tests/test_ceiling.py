@@ -19,7 +19,8 @@ from test_evaluation import RUN, toy_tensor
 from conftest import ROOT
 
 GRID = Grid(rows=6, cols=6, cell_m=235.0)
-SETTINGS = CeilingSettings(sweeps=4, lattice=9, keep=2, refine=3, chains=2, fresh=1, bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
+SETTINGS = CeilingSettings(sweeps=4, lattice=9, keep=2, refine=3, chains=2, fresh=1,
+                           bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
 SEARCH = SearchSettings(sweeps=2, lattice=7, refine=2, bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
 
 
@@ -159,3 +160,18 @@ def test_a_placement_of_the_wrong_shape_or_with_nan_is_refused(make_scenario):
     with pytest.raises(ValueError, match="placement bw_logit: non-finite value at episode 0, UAV 2"):
         core.place(np.zeros((1, 3, 2)), np.array([[0.0, 0.0, np.nan]]))
     assert core.t == 0  # nothing moved
+
+
+def test_a_days_ceiling_depends_on_that_day_alone_not_on_the_days_evaluated_beside_it(make_scenario):
+    """Sparse maps (about 70% of the cells empty, other ones each day): each day's ceiling is the same number
+    whether it is evaluated alone or batched with another, as the profiles' day limits batch them."""
+    scn = make_scenario(n_uavs=3, demand_intensity=150.0)
+    t = toy_tensor()
+    t.demand[:] *= np.random.default_rng(1).random(t.demand.shape) < 0.3
+    kw = dict(tensor=t, scenario=scn, seed=0, limits={"id": None, "ood": None}, profile="smoke", **RUN)
+    def ceiling(days):
+        return evaluate(controller=CeilingController(name="ceiling", options=SETTINGS), **{**kw, "days": days}).days
+
+    together = ceiling({"id": [3, 4]})
+    for row in together.iter_rows(named=True):
+        assert ceiling({"id": [row["day"]]})["sr_mean"].to_list() == [row["sr_mean"]], row["label"]

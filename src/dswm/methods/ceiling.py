@@ -109,7 +109,10 @@ def ceiling_search(x: torch.Tensor, starts: torch.Tensor, start_logits: torch.Te
     over ``refine`` rounds on their 8 neighbours at half the previous spacing; then the best of its current logit
     and ``bw_logits``. A candidate must beat the current point (ties keep it), so the served ratio never falls
     below the start's, and a (day, start) whose pass moved nothing is at a local optimum of these moves and is left
-    alone. Candidates are scored by ``dswm.sim.physics.served_ratio``, many (day, start, candidate) fleets a call.
+    alone. Candidates are scored by ``dswm.sim.physics.served_ratio``, many (start, candidate) fleets a call. Each
+    day is searched on its own, on the cells that carry demand in its map (the others change no served ratio), so a
+    day's placement depends on that day alone, never on the days evaluated beside it (which cells are left out
+    changes the float rounding of the sums, and with it which of two near-equal candidates wins).
 
     Args:
         x: (B, G) the true map of the slot.
@@ -121,9 +124,13 @@ def ceiling_search(x: torch.Tensor, starts: torch.Tensor, start_logits: torch.Te
         The placement (B, S, K, 2) reached from each start, its logits (B, S, K) and its served ratio (B, S).
     """
     b, s, k, _ = starts.shape
+    if b > 1:  # each day on its own cells: see above
+        days = [ceiling_search(x[i:i + 1], starts[i:i + 1], start_logits[i:i + 1], settings=settings, cells=cells,
+                               geom=geom, params=params) for i in range(b)]
+        return tuple(torch.cat(part) for part in zip(*days))
     plan = geom.clip(starts.reshape(b * s, k, 2).float()).clone()  # (N, K, 2), N = B x S rows
     logit = start_logits.reshape(b * s, k).float().clone()
-    cols = (x > DEMAND_EPS).any(0).nonzero().squeeze(-1)  # cells without demand on every day change nothing
+    cols = (x[0] > DEMAND_EPS).nonzero().squeeze(-1)  # cells without demand change nothing
     if cols.numel() == 0:
         return plan.reshape(b, s, k, 2), logit.reshape(b, s, k), torch.ones(b, s)
     x, cells = x[:, cols].repeat_interleave(s, dim=0), cells[cols]  # (N, G')
