@@ -32,7 +32,7 @@ import yaml
 from _decisions import scenario_for
 from _timing import RESULTS, write
 from dswm import settings as runconfig
-from dswm.config import to_plain
+from dswm.config import to_plain, with_budget
 from dswm.methods.ceiling import CeilingController, CeilingSettings
 from dswm.protocol.evaluation import evaluate
 
@@ -102,7 +102,7 @@ def main() -> None:
     settings = runconfig.resolve(config)
     results = ROOT / args.results
     scenario, source = scenario_for(settings, results / "calibration" / "demand_intensity.json", ROOT)
-    base = runconfig.build(CeilingSettings, config["ceiling"], "ceiling")
+    base = runconfig.build(CeilingSettings, *with_budget(config["ceiling"], "demo", "ceiling"))  # the demo's = the paper's
     doubled = base.doubled()
     report = {"settings": to_plain(base), "doubled": to_plain(doubled), "tolerance": TOLERANCE,
               "intensity_from": source, "datasets": {}}

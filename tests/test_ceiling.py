@@ -30,7 +30,12 @@ def test_the_ceiling_is_a_clairvoyant_upper_bound_with_its_own_section_and_no_sh
     m = s.methods["ceiling"]
     assert (m.controller_class, m.label, m.table_class, m.learns) == (CeilingController, "Ceiling (clairvoyant)",
                                                                      "upper bound", False)
-    assert m.options == CeilingSettings(**config["ceiling"])
+    section = {k: v for k, v in config["ceiling"].items() if k != "budgets"}
+    assert m.options == CeilingSettings(**section)  # the demo (default) and the paper run the section as written
+    assert runconfig.resolve({**config, "profile": "paper"}).methods["ceiling"].options == m.options
+    smoke = runconfig.resolve({**config, "profile": "smoke"}).methods["ceiling"].options  # CI's weaker search
+    assert smoke == CeilingSettings(**{**section, **config["ceiling"]["budgets"]["smoke"]})
+    assert (smoke.lattice, smoke.chains) < (m.options.lattice, m.options.chains)
     ctl = CeilingController(name="ceiling", options=m.options)
     assert ctl.clairvoyant and ctl.places and ctl.deterministic
     assert ctl.search_settings() is None  # its search is its own: the controllers' one `search` does not apply

@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Mapping, Sequence
 import numpy as np
 import torch
 
-from dswm.config import check_fields, setting, stable_hash
+from dswm.config import check_fields, setting, stable_hash, with_budget
 from dswm.methods.base import DayContext
 from dswm.methods.classical import BatchedController
 from dswm.sim.fleet import Geometry
@@ -269,9 +269,11 @@ class CeilingController(BatchedController):
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> CeilingSettings:
-        """The ceiling's own search (config.yaml ``ceiling``), the same under every profile: a bound's strength is
-        not a budget."""
-        return cls.options_from_plain(name=name, data=config["ceiling"], where="ceiling")
+        """The ceiling's own search (config.yaml ``ceiling``) with its ``ceiling.budgets.<profile>`` entry merged in:
+        the demo and the paper run the section's settings, which pass the doubling check; only the smoke profile
+        (CI) lowers them."""
+        section, key = with_budget(config["ceiling"], profile, "ceiling")
+        return cls.options_from_plain(name=name, data=section, where=key)
 
     def reset_batch(self, ctxs: Sequence[DayContext]) -> None:
         """Take each day's true demand (T, R, C) from the context (handed to clairvoyant controllers only); each day's
