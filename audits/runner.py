@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from audits import crop, derived, probes, protocol, splits, sql, statistics, training
+from audits import bounds, crop, derived, probes, protocol, splits, sql, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -41,6 +41,7 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     protocol.check_result_days,
     protocol.check_result_records,
     protocol.check_bcd_search_identical,
+    bounds.check_clairvoyant_bounds,
     training.check_training_days,
     training.check_checkpoints,
     training.check_evaluated_models,
@@ -64,7 +65,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
     family = {"derived": "statistics", "crop": "statistics", "sql": "statistics", "training": "protocol",
-              "probes": "protocol"}.get(family, family)
+              "probes": "protocol", "bounds": "protocol"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback

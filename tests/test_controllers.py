@@ -134,7 +134,9 @@ def test_a_profile_budget_overrides_the_settings_of_its_profile_only(raw):
 
 def test_only_the_upper_bounds_are_clairvoyant_and_only_world_models_and_rl_methods_learn(settings):
     classes = {n: m.controller_class for n, m in settings.methods.items()}
-    assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["oracle", "perfect"]
+    assert sorted(n for n, c in classes.items() if c.clairvoyant) == ["ceiling", "oracle", "perfect"]
+    assert [n for n, c in classes.items() if c.places] == ["ceiling"]  # the one bound that places, not flies
+    assert {settings.methods[n].table_class for n, c in classes.items() if c.clairvoyant} == {"upper bound"}
     learners = sorted(n for n, m in settings.methods.items() if m.learns)
     assert learners == sorted(["dswm", "dswm_plus", "dswm_wo_dec", "dswm_wo_unc", *LEARNING_BASELINES])
     assert [settings.methods[m].table_class for m in LEARNING_BASELINES] == list(LEARNING_BASELINES.values())

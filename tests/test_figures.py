@@ -76,6 +76,22 @@ def test_main_figure_numbers_are_seed_means_and_sample_stds(tmp_path):
     assert common.read_csv(tmp_path / "main.csv").height == 6  # 3 methods x 2 splits
 
 
+def test_main_figure_draws_a_bound_without_energy_and_leaves_its_energy_empty(tmp_path):
+    """The per-slot ceiling flies no fleet: its result files hold no energy, so it has a served-ratio bar only."""
+    ceiling = day_rows().filter((pl.col("method") == "greedy") & (pl.col("dataset") == "milan")).with_columns(
+        pl.lit("ceiling").alias("method"), (pl.col("sr_mean") + 0.2).alias("sr_mean"),
+        pl.lit(None, pl.Float64).alias("energy_kj_per_slot"), pl.lit(None, pl.Float64).alias("energy_efficiency"))
+    kw = {**KW, "labels": {**LABELS, "ceiling": "Ceiling"}, "classes": {**CLASSES, "ceiling": "upper bound"},
+          "run_order": ["static", "greedy", "dswm", "ceiling"],
+          "class_order": ["world model", "model-free", "deployment", "upper bound"]}
+    data = results.draw_main(pl.concat([day_rows(), ceiling]), dataset="milan", source="demo",
+                             out=common.outputs(tmp_path / "main"), **kw)
+    row = data.filter((pl.col("method") == "ceiling") & (pl.col("split") == "id")).row(0, named=True)
+    assert row["sr_mean"] == pytest.approx(0.91) and row["energy_kj_per_slot"] is None
+    assert row["energy_efficiency"] is None
+    assert (tmp_path / "main.png").stat().st_size > 0
+
+
 def test_ood_figure_degradation_is_weekday_minus_holiday_per_seed(tmp_path):
     data = results.draw_ood(day_rows(), dataset="milan", source="demo", out=common.outputs(tmp_path / "ood"), **KW)
     deg = dict(data.select("method", "degradation").unique().iter_rows())

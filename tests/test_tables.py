@@ -12,7 +12,7 @@ from dswm.protocol.tables import CROSS_COLUMNS, MAIN_COLUMNS, ROOM_COLUMNS, buil
 
 TABLES = {"main_dataset": "milan", "decimals": 3, "split_labels": {"id": "Weekday", "ood": "Holiday"},
           "class_order": ["world model", "model-free", "deployment", "upper bound"],
-          "room": {"low": "static", "high": "oracle", "fill": ["greedy"], "min_room": 0.168}}
+          "room": {"low": "static", "high": "oracle", "fill": ["greedy"], "min_room": 0.168, "ladder": []}}
 
 # (dataset, method, seed) -> ({ID day: SR}, {OOD day: SR})
 SCORES = {
@@ -135,6 +135,49 @@ def test_room_footnote_by_hand(tmp_path):
     assert got[("milan", "holiday")]["filled"] == ""
     assert "Milan Holiday 0.765 -> 0.930 (room +0.165; gained: Greedy (BCD) +0.070)" in main
     assert r"41\%" in (tmp_path / "tables" / "milan_main.tex").read_text()
+
+
+def test_the_ladder_of_bounds_by_hand_with_a_ceiling_that_flies_no_fleet(tmp_path):
+    """tables.room.ladder: per dataset and split, room.csv gives each rung (its position in `rung`) beside the fill
+    methods, and both footnotes give the ladder; the ceiling's row shows no energy ("--"): it flies no fleet."""
+    paths, metas = write_results(tmp_path / "results")
+    ceiling = {("milan", 0): ({0: 0.95, 1: 0.97}, {3: 0.98, 4: 0.98}),
+               ("milan", 1): ({0: 0.95, 1: 0.97}, {3: 0.98, 4: 0.98}), ("shanghai", 0): ({5: 0.90}, {7: 0.93})}
+    for (ds, seed), (id_days, ood_days) in ceiling.items():
+        rows = [{"day": d, "split": s, "sr_mean": v} for s, days in (("id", id_days), ("ood", ood_days))
+                for d, v in days.items()]
+        p = tmp_path / "results" / ds / "ceiling" / f"seed{seed}" / "days.parquet"
+        p.parent.mkdir(parents=True)
+        pl.DataFrame(rows).with_columns(
+            pl.lit(ds).alias("dataset"), pl.lit("ceiling").alias("method"), pl.lit(seed).alias("seed"),
+            pl.lit("demo").alias("profile"), pl.lit("d").alias("label"), pl.lit(1.0).alias("jain"),
+            pl.lit(None, pl.Float64).alias("energy_kj_per_slot"),
+            pl.lit(None, pl.Float64).alias("energy_efficiency")).write_parquet(p)
+        paths.append(p)
+    run_order = ["static", "greedy", "oracle", "ceiling"]
+    tables = {**TABLES, "room": {**TABLES["room"], "ladder": ["static", "greedy", "oracle", "ceiling"]}}
+    build_tables(result_paths=paths, meta_paths=metas, specs={m: BUILTIN[m] for m in run_order}, run_order=run_order,
+                 tables_cfg=tables, profile="demo", out_dir=tmp_path / "tables")
+    rows = read_csv(tmp_path / "tables" / "room.csv")
+    assert list(rows[0]) == ROOM_COLUMNS
+    mw = [r for r in rows if (r["dataset"], r["split"]) == ("milan", "weekday")]
+    # the rungs in ladder order; greedy, the fill method, is a rung here, so it is not repeated
+    assert [(r["method"], r["rung"]) for r in mw] == [("static", "0"), ("greedy", "1"), ("oracle", "2"),
+                                                      ("ceiling", "3")]
+    assert [float(r["method_mean"]) for r in mw] == pytest.approx([0.73, 0.80, 0.90, 0.96])
+    # the ceiling fills (0.96 - 0.73) / 0.17 of the room from static to the oracle
+    assert float(mw[3]["filled"]) == pytest.approx(0.23 / 0.17)
+    main = (tmp_path / "tables" / "milan_main.md").read_text()
+    assert ("Ladder of references and bounds, Static (K-means) -> Greedy (BCD) -> Oracle (clairvoyant) -> Ceiling "
+            "(clairvoyant): Milan Weekday 0.730 -> 0.800 -> 0.900 -> 0.960; Milan Holiday 0.765 -> 0.835 -> 0.930 -> "
+            "0.980.") in main
+    assert "Milan Weekday 0.730 -> 0.900 (room +0.170; gained: Greedy (BCD) +0.070 (41%))" in main  # the room note
+    assert ("| Ceiling (clairvoyant) | upper bound | 0.960±0.000 | 0.980±0.000 | -- | -- | -- | -- | 1.000±0.000 | "
+            "1.000±0.000 | 2 |") in main
+    cross = (tmp_path / "tables" / "cross_dataset.md").read_text()
+    assert "Shanghai Weekday 0.400 -> 0.600 -> 0.700 -> 0.900; Shanghai Holiday 0.450 -> 0.620 -> 0.710 -> 0.930." \
+        in cross
+    assert "| Ceiling (clairvoyant) | 0.960/0.980 | 0.900/0.930 |" in cross
 
 
 def test_results_of_another_profile_are_refused(tmp_path):

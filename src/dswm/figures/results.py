@@ -46,8 +46,9 @@ def _bars(ax, order, labels, table: pl.DataFrame, value: str, ylabel: str, split
     width = 0.4
     for i, (split, _) in enumerate(SPLITS):
         rows = {r["method"]: r for r in table.filter(pl.col("split") == split).iter_rows(named=True)}
-        mean = [rows[m][value] if m in rows else np.nan for m in order]
-        std = [rows[m][value + "_std"] if m in rows else 0.0 for m in order]
+        # no bar where a method lacks the metric (the per-slot ceiling flies no fleet: no energy)
+        mean = [rows[m][value] if m in rows and rows[m][value] is not None else np.nan for m in order]
+        std = [rows[m][value + "_std"] if m in rows and rows[m][value + "_std"] is not None else 0.0 for m in order]
         ax.bar(x + (i - 0.5) * width, mean, width, yerr=std, capsize=2, label=split_labels[split],
                color=("tab:blue", "tab:orange")[i])
     ax.set_xticks(x, [labels[m] for m in order], rotation=60, ha="right", fontsize=7)

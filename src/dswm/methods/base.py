@@ -2,9 +2,10 @@
 
 A controller sees one observation per slot and answers an action ``(K, 3)`` in [-1, 1]: (dx, dy) as a
 fraction of D_max and the bandwidth logit of each UAV. Before each evaluated day it receives a
-:class:`DayContext`; only a controller that declares ``clairvoyant = True`` (the oracle) gets the day's true
-demand in it. Learning methods declare ``learns = True`` and implement :meth:`Controller.fit` on a core built
-from the TRAINING days only, plus :meth:`save`/:meth:`load`; methods whose training is identical
+:class:`DayContext`; only a controller that declares ``clairvoyant = True`` (the bounds) gets the day's true
+demand in it; a per-slot bound (``places = True``, the ceiling) places the fleet each slot instead of acting.
+Learning methods declare ``learns = True`` and implement :meth:`Controller.fit` on a core built from the TRAINING
+days only, plus :meth:`save`/:meth:`load`; methods whose training is identical
 (:meth:`Controller.training_settings`) share one trained model (``dswm.methods.registry.training_sources``).
 A method's settings are one typed section, :attr:`Controller.options_type`, built by ``dswm.config.build``.
 """
@@ -64,16 +65,21 @@ class Controller:
 
     Attributes:
         name: the registered method name.
-        clairvoyant: True only for the oracle; it alone receives ``DayContext.demand``.
+        clairvoyant: True only for the bounds (oracle, perfect, ceiling); they alone receive ``DayContext.demand``.
         learns: True for methods trained by the ``train`` rule before evaluation.
         batched: True if :meth:`reset_batch`/:meth:`act_batch` step several days at once.
         deterministic: True if the seed does not change the result (static, greedy, oracle).
+        places: True only for a per-slot bound (the ceiling): it flies no fleet, it places it (:meth:`place_batch`).
     """
 
     clairvoyant: ClassVar[bool] = False
     learns: ClassVar[bool] = False
     batched: ClassVar[bool] = False
     deterministic: ClassVar[bool] = False
+    places: ClassVar[bool] = False
+    """A per-slot bound, not a controller: the evaluation asks :meth:`place_batch` for each slot's placement of the
+    whole fleet and serves it with every UAV available and no motion limit (``FleetCore.place``), instead of
+    stepping the fleet with :meth:`act_batch`'s action."""
 
     shares_training: ClassVar[bool] = False
     """Methods of this class whose :meth:`training_settings` are equal share one trained model; off by default,
@@ -163,6 +169,11 @@ class Controller:
     def act_batch(self, obs: Mapping[str, Any]) -> np.ndarray:
         """Actions ``(B, K, 3)`` for a batch of observations with a leading axis B (only when ``batched``)."""
         raise NotImplementedError(f"method {self.name!r} is not batched")
+
+    def place_batch(self, obs: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """A per-slot bound's placement for the next slot of B days (only when ``places``): positions (B, K, 2) in
+        metres and bandwidth logits (B, K) in [-1, 1]."""
+        raise NotImplementedError(f"method {self.name!r} places no fleet")
 
     def day_stats(self) -> list[dict[str, float]]:
         """Extra numbers of the days of the last :meth:`reset` / :meth:`reset_batch`, one mapping per day in that

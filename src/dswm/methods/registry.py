@@ -49,8 +49,10 @@ BUILTIN: dict[str, MethodSpec] = {s.name: s for s in [
     _spec("oracle", "dswm.methods.classical:OracleController", "Oracle (clairvoyant)", "upper bound"),
     _spec("perfect", "dswm.methods.dswm.agent:PerfectForecastController", "Perfect forecast (clairvoyant)",
           "upper bound"),
+    _spec("ceiling", "dswm.methods.ceiling:CeilingController", "Ceiling (clairvoyant)", "upper bound"),
 ]}
-"""Built-in methods (docs/PROTOCOL.md §5): the paper's 14, this project's DSWM+ and its probe, the two upper bounds."""
+"""Built-in methods (docs/PROTOCOL.md §5): the paper's 14, this project's DSWM+ and its probe, the three upper bounds
+(the oracle, the perfect forecast and the per-slot ceiling)."""
 
 
 def lookup(name: str, methods: Mapping[str, Any]) -> tuple[MethodSpec, type[Controller]]:

@@ -3,10 +3,12 @@
 Every method runs the same days through the same ``FleetCore`` from the same initial state (demand-weighted
 K-means of the mean TRAINING map; batteries drawn from (dataset, day) alone). A day's score is the mean of
 its 144 served-ratio values (SR_0 of the initial deployment, then one per decision). The evaluated days of a
-job are stepped as one batch when the controller is batched. The per-day table this module returns is the
-source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results"); :func:`write_days`
-stores it with two records in the file's metadata: the model the evaluation loaded (:data:`MODEL_RECORD_KEY`)
-and the method's resolved settings, its BCD search included (:data:`METHOD_RECORD_KEY`).
+job are stepped as one batch when the controller is batched. A per-slot bound (``Controller.places``, the ceiling)
+is asked for a placement of the whole fleet each slot instead of an action, served by ``FleetCore.place`` with the
+same physics and every UAV available; it flies no fleet, so its energy columns are null. The per-day table this
+module returns is the source of truth for the tables and the leakage audit (docs/ARCHITECTURE.md, "Results");
+:func:`write_days` stores it with two records in the file's metadata: the model the evaluation loaded
+(:data:`MODEL_RECORD_KEY`) and the method's resolved settings, its BCD search included (:data:`METHOD_RECORD_KEY`).
 """
 from __future__ import annotations
 
@@ -170,10 +172,15 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
         plan_s = 0.0
         for _ in range(steps):
             t0 = time.perf_counter()
-            action = controller.act_batch(obs) if controller.batched else controller.act(
-                {k: v[0] for k, v in obs.items()})[None]
-            plan_s += time.perf_counter() - t0
-            out = core.step(action)
+            if controller.places:  # a per-slot bound: its placement, served with every UAV and no motion limit
+                placement = controller.place_batch(obs)
+                plan_s += time.perf_counter() - t0
+                out = core.place(*placement)
+            else:
+                action = controller.act_batch(obs) if controller.batched else controller.act(
+                    {k: v[0] for k, v in obs.items()})[None]
+                plan_s += time.perf_counter() - t0
+                out = core.step(action)
             obs = out.obs
             sr.append(out.sr)
             jain.append(out.jain)
@@ -186,9 +193,10 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
         stats = day_stat_columns(controller, len(batch))
         for b, i in enumerate(batch):
             split, day = order[i]
-            e_kj = float(energy_a[b].mean()) / 1000.0
+            e_kj = None if controller.places else float(energy_a[b].mean()) / 1000.0  # a bound flies no fleet
             rows.append({"day": day, "label": labels[day], "split": split, "sr_mean": float(sr_a[b].mean()),
-                         "energy_kj_per_slot": e_kj, "energy_efficiency": float(sr_a[b].mean()) / (e_kj / 1000.0),
+                         "energy_kj_per_slot": e_kj,
+                         "energy_efficiency": None if e_kj is None else float(sr_a[b].mean()) / (e_kj / 1000.0),
                          "jain": float(jain_a[b].mean()), "plan_ms_per_slot": 1000.0 * plan_s / (len(batch) * steps),
                          **stats[b]})
             if keep.get(day) == split:
@@ -201,7 +209,7 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
     stat_cols = sorted({c for r in rows for c in r if c.startswith(STAT_PREFIX)})
     df = pl.DataFrame([{**dict.fromkeys(stat_cols), **r, **const} for r in rows]).select(DAY_COLUMNS + stat_cols)
     df = df.with_columns(pl.col("day").cast(pl.Int32), pl.col("seed").cast(pl.Int32),
-                         *[pl.col(c).cast(pl.Float64) for c in stat_cols])
+                         *[pl.col(c).cast(pl.Float64) for c in ("energy_kj_per_slot", "energy_efficiency", *stat_cols)])
     return EvalResult(days=df, trajectories=traj)
 
 

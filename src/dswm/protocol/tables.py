@@ -15,14 +15,16 @@ Markdown, LaTeX and CSV (the CSV columns are fixed for other tools).
 
 Both tables carry a footnote on the room a forecast could fill (``tables.room``): per dataset and split, the
 served ratio from a method that plans on the current map (Greedy) to one that plans on the true future maps
-(the perfect forecast), and the share of that room each forecasting method fills; ``room.csv`` holds the numbers.
+(the perfect forecast), and the share of that room each forecasting method fills; then the ladder of references
+and bounds (``tables.room.ladder``: Static -> Greedy -> Oracle -> Perfect -> Ceiling), from holding the deployment
+to the per-slot ceiling no controller can pass. ``room.csv`` holds the numbers of both.
 """
 from __future__ import annotations
 
 import csv
 import io
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 
 import polars as pl
 
@@ -31,7 +33,7 @@ from prep.atomic import write_text
 from prep.tensor import read_meta
 
 ROOM_COLUMNS = ["dataset", "split", "low", "high", "low_mean", "high_mean", "room", "method", "method_mean",
-                "filled"]
+                "filled", "rung"]
 EXTRA_METRICS = {"energy": "energy_kj_per_slot", "efficiency": "energy_efficiency", "jain": "jain"}
 """Table III's metrics besides the served ratio: {column prefix: days.parquet column}."""
 EXTRA_LABELS = {"energy": "Energy (kJ/slot)", "efficiency": "Efficiency", "jain": "Jain"}
@@ -164,8 +166,10 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
         md.append(f"| {label} | {r['class']} | {wk} | {hd} | " + " | ".join(extra) + f" | {r['n_seeds']} |")
         tex_rows.append(f"{_tex_escape(label)} & {_tex_escape(r['class'])} & {_tex_escape(wk)} & "
                         f"{_tex_escape(hd)} & " + " & ".join(_tex_escape(e) for e in extra) + " \\\\")
-    main_note = room_note([r for r in room if r["dataset"] == main_ds], specs, tables_cfg["split_labels"], d,
-                          tables_cfg["room"]["min_room"])
+    main_note = " ".join(note for note in (
+        room_note([r for r in room if r["dataset"] == main_ds], specs, tables_cfg["split_labels"], d,
+                  tables_cfg["room"]["min_room"], tables_cfg["room"]["fill"]),
+        ladder_note([r for r in room if r["dataset"] == main_ds], specs, tables_cfg["split_labels"], d)) if note)
     if main_note:
         md += ["", main_note]
     tex = _tex_table(caption=f"{title}. {note}. {main_note}".rstrip(), label=f"tab:{main_ds}",
@@ -196,7 +200,10 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
     seeds = "; ".join(f"{DATASET_LABELS[ds]} {summary.filter(pl.col('dataset') == ds)['n_seeds'].max()} seed(s)"
                       for ds in datasets)
     md += ["", f"Seeds: {seeds}."]
-    cross_note = room_note(room, specs, tables_cfg["split_labels"], d, tables_cfg["room"]["min_room"])
+    cross_note = " ".join(note for note in (
+        room_note(room, specs, tables_cfg["split_labels"], d, tables_cfg["room"]["min_room"],
+                  tables_cfg["room"]["fill"]),
+        ladder_note(room, specs, tables_cfg["split_labels"], d)) if note)
     if cross_note:
         md += ["", cross_note]
     tex = _tex_table(caption=f"{title}; {seeds}. {note}. {cross_note}".rstrip(), label="tab:cross", spec="@{}l" + "c" * len(datasets) + "@{}",
@@ -208,20 +215,25 @@ def build_tables(*, result_paths: Iterable[str | Path], meta_paths: Mapping[str,
 
 
 def room_rows(summary: pl.DataFrame, room: Mapping[str, Any], datasets: list[str]) -> list[dict]:
-    """The room a forecast could fill, per dataset and split (columns :data:`ROOM_COLUMNS`).
+    """The room a forecast could fill and the ladder of bounds, per dataset and split (columns
+    :data:`ROOM_COLUMNS`).
 
     Args:
         summary: the ``summary`` view (``dswm.protocol.results_db``).
         room: ``tables.room``: ``low`` (plans on the current map), ``high`` (plans on the true future maps),
-            ``fill`` (the methods whose share of the room is reported) and ``min_room`` (the smallest room whose
-            share is reported: a share of a room within seed noise means nothing).
+            ``fill`` (the methods whose share of the room is reported), ``min_room`` (the smallest room whose
+            share is reported: a share of a room within seed noise means nothing) and ``ladder`` (the references and
+            bounds in order, e.g. static, greedy, oracle, perfect, ceiling).
         datasets: in table order.
 
     Returns:
-        One row per (dataset, split, method of ``fill`` present): room = high - low, filled = (method - low) /
-        room (None when the room is below ``min_room``); no row for a dataset lacking ``low`` or ``high``.
+        Per (dataset, split): one row per method of ``ladder`` present, ``rung`` its position in the ladder, then one
+        per method of ``fill`` present (``rung`` None) that the ladder lacks. Room = high - low, filled = (method -
+        low) / room (None when the room is below ``min_room``); no row for a dataset lacking ``low`` or ``high``.
     """
     cells = {(r["method"], r["dataset"]): r for r in summary.iter_rows(named=True)}
+    ladder = list(room["ladder"])
+    methods = [(m, i) for i, m in enumerate(ladder)] + [(m, None) for m in room["fill"] if m not in ladder]
     rows = []
     for ds in datasets:
         lo, hi = cells.get((room["low"], ds)), cells.get((room["high"], ds))
@@ -229,20 +241,23 @@ def room_rows(summary: pl.DataFrame, room: Mapping[str, Any], datasets: list[str
             continue
         for split in ("weekday", "holiday"):
             gap = hi[f"{split}_mean"] - lo[f"{split}_mean"]
-            for m in room["fill"]:
+            for m, rung in methods:
                 if (m, ds) not in cells:
                     continue
                 got = cells[(m, ds)][f"{split}_mean"]
                 rows.append({"dataset": ds, "split": split, "low": room["low"], "high": room["high"],
                              "low_mean": lo[f"{split}_mean"], "high_mean": hi[f"{split}_mean"], "room": gap,
                              "method": m, "method_mean": got,
-                             "filled": (got - lo[f"{split}_mean"]) / gap if gap >= room["min_room"] else None})
+                             "filled": (got - lo[f"{split}_mean"]) / gap if gap >= room["min_room"] else None,
+                             "rung": rung})
     return rows
 
 
 def room_note(rows: list[dict], specs: Mapping[str, Any], split_labels: Mapping[str, str], d: int,
-              min_room: float) -> str:
-    """The footnote of :func:`room_rows`: per dataset and split, low -> high and the share each method fills."""
+              min_room: float, fill: Sequence[str]) -> str:
+    """The footnote of :func:`room_rows`: per dataset and split, low -> high and the share each method of ``fill``
+    fills."""
+    rows = [r for r in rows if r["method"] in fill]
     if not rows:
         return ""
     first = rows[0]
@@ -259,6 +274,23 @@ def room_note(rows: list[dict], specs: Mapping[str, Any], split_labels: Mapping[
     return (f"Room a forecast could fill, {specs[first['low']].label} -> {specs[first['high']].label}, and what "
             f"each method gains over {specs[first['low']].label} (its share of the room when the room is at least "
             f"{min_room:.{d}f}): " + "; ".join(parts) + ".")
+
+
+def ladder_note(rows: list[dict], specs: Mapping[str, Any], split_labels: Mapping[str, str], d: int) -> str:
+    """The ladder's footnote from the rows of :func:`room_rows` with a ``rung``: per dataset and split, each rung's
+    served ratio in ladder order."""
+    rows = sorted((r for r in rows if r.get("rung") is not None), key=lambda r: r["rung"])
+    if not rows:
+        return ""
+    names = " -> ".join(specs[m].label for m in dict.fromkeys(r["method"] for r in rows))
+    parts = []
+    for ds in dict.fromkeys(r["dataset"] for r in rows):
+        for split, key in (("weekday", "id"), ("holiday", "ood")):
+            sel = [r for r in rows if r["dataset"] == ds and r["split"] == split]
+            if sel:
+                parts.append(f"{DATASET_LABELS.get(ds, ds)} {split_labels[key]} "
+                             + " -> ".join(f"{r['method_mean']:.{d}f}" for r in sel))
+    return f"Ladder of references and bounds, {names}: " + "; ".join(parts) + "."
 
 
 def _tex_table(*, caption: str, label: str, spec: str, header: str, rows: list[str]) -> str:

@@ -142,7 +142,7 @@ class SplitLabels:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RoomSettings:
-    """config.yaml ``tables.room``: the footnote on the room a forecast could fill."""
+    """config.yaml ``tables.room``: the footnote on the room a forecast could fill and on the ladder of bounds."""
 
     low: str
     """The method that plans on the current map (Greedy)."""
@@ -152,6 +152,9 @@ class RoomSettings:
     """The methods whose share of the room the footnote gives."""
     min_room: float
     """The smallest room whose share is given."""
+    ladder: tuple[str, ...]
+    """The references and bounds the footnote and room.csv give in order (Static -> Greedy -> Oracle -> Perfect ->
+    Ceiling), per dataset and split."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -278,6 +278,37 @@ class FleetCore:
                           energy_j=fleet_energy.numpy(), jain=jain.numpy(),
                           terminated=np.zeros(b, dtype=bool), truncated=np.full(b, done))
 
+    def place(self, pos, bw_logit) -> StepOutput:
+        """Move to slot t+1 with the fleet PLACED at ``pos`` (B, K, 2) metres, every UAV active, and serve x_{t+1}
+        with ``bw_logit`` (B, K), exactly as :meth:`step` serves a flown fleet: the per-slot bound's step
+        (``dswm.methods.ceiling``), with no motion limit, no battery and no flight, hence no energy and no reward
+        (NaN). Positions are clipped to the area and logits to [-1, 1], the controllers' range; NaN/inf or a wrong
+        shape raise ValueError."""
+        if self.t >= self.scenario.slots_per_day - 1:
+            raise RuntimeError("place() after the end of the day: call reset() first")
+        b, k = len(self.days), self.scenario.n_uavs
+        p = torch.as_tensor(np.asarray(pos, dtype=np.float32), device=self.device)
+        lg = torch.as_tensor(np.asarray(bw_logit, dtype=np.float32), device=self.device)
+        for name, value, shape in (("pos", p, (b, k, 2)), ("bw_logit", lg, (b, k))):
+            if tuple(value.shape) != shape:
+                raise ValueError(f"placement {name}: expected shape {shape}, found {tuple(value.shape)}")
+            if not torch.isfinite(value).all():
+                where = torch.nonzero(~torch.isfinite(value))[0].tolist()
+                raise ValueError(f"placement {name}: non-finite value at episode {where[0]}, UAV {where[1]}")
+        with torch.no_grad():
+            self.state = FleetState(pos=self.geom.clip(p), battery_j=self.state.battery_j,
+                                    status=torch.full((b, k), ACTIVE, dtype=torch.long, device=self.device),
+                                    charge_left=torch.zeros((b, k), dtype=torch.long, device=self.device))
+            self.t += 1
+            x = self.demand[self.days, self.t]
+            res = self._serve(x, self.state, lg.clamp(-1.0, 1.0))
+            jain = jain_index(res.fulfilment, x, self.scenario.u_peak)
+            self._served = (x, res)
+        nan = np.full(b, np.nan)
+        return StepOutput(obs=self.observe(), reward=nan, sr=res.sr.numpy(), energy_j=nan.copy(), jain=jain.numpy(),
+                          terminated=np.zeros(b, dtype=bool),
+                          truncated=np.full(b, self.t >= self.scenario.slots_per_day - 1))
+
 
 def grid_of(tensor) -> Grid:
     """The Grid of a prepared tensor (``prep.tensor.DemandTensor``)."""
