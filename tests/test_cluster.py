@@ -1,7 +1,10 @@
 """The workflow on real cluster engines, started on loopback (tests/cluster/engines.py): the smoke DAG of Milan through
 Snakemake's SLURM executor (`--executor slurm --profile profiles/slurm --jobs 4`), logging to an MLflow tracking
 server whose backend store is PostgreSQL, against the local smoke run of the integration tests (Milan's per-day
-result files and the tables that one dataset makes); and 8 processes logging to that server at once.
+result files and the tables that one dataset makes); and 8 processes logging to that server at once. The server
+runs MLflow's basic-auth app: every job logs as the group's writer, whose credentials only the environment holds;
+an unauthenticated request gets 401, a job or a workflow with a wrong password fails with the refusal named and
+creates no run, and no secret of the engines shows in a log, a ``ps`` listing taken during the run, a param or a tag.
 
 Collected with ``pytest --cluster`` only; the engines must be installed first (``tests/cluster/install.sh``, as root),
 and a missing one fails the tests by name. The engines and the SLURM run start with the session (conftest.slurm_smoke,
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import re
 import subprocess
 import time
@@ -46,6 +50,14 @@ def engines(slurm_smoke):
     if slurm_smoke.error is not None:
         pytest.fail(f"the cluster engines or the SLURM run did not start:\n{slurm_smoke.error}")
     return slurm_smoke.engines
+
+
+@pytest.fixture
+def writer(engines, monkeypatch):
+    """The writer's credentials in this process's environment (MLflow's client reads them there), for one test."""
+    for var, value in engines.credentials.items():
+        monkeypatch.setenv(var, value)
+    return engines.credentials
 
 
 def job_stats(text: str) -> dict[str, int]:
@@ -103,7 +115,8 @@ def slurm_run(engines, slurm_smoke, smoke_tables, request):
     reporter = request.config.pluginmanager.get_plugin("terminalreporter")
     if reporter is not None:
         reporter.write_line(f"smoke DAG (tables calibrate) on SLURM: {summary}")
-    return {"work": work, "text": text, "submitted": submitted, "sacct": records, "summary": summary}
+    return {"work": work, "text": text, "submitted": submitted, "sacct": records, "summary": summary,
+            "ps": slurm_smoke.ps, "log": slurm_smoke.log}
 
 
 def test_every_slurm_job_of_the_smoke_dag_completed(slurm_run):
@@ -154,7 +167,7 @@ def test_the_tables_equal_the_local_smoke_runs_milan_rows_byte_for_byte(slurm_ru
         assert ours[name] == b"".join([header, *milan]), name
 
 
-def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines):
+def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines, writer):
     from prep.rawio import sha256_file
 
     client = MlflowClient(tracking_uri=engines.mlflow_uri)
@@ -204,7 +217,7 @@ def _writer(uri: str, experiment_id: str, index: int, barrier, out) -> None:
         out.put((index, None, f"{type(err).__name__}: {err}"))
 
 
-def test_eight_concurrent_writers_to_the_postgresql_backed_server_all_complete(engines):
+def test_eight_concurrent_writers_to_the_postgresql_backed_server_all_complete(engines, writer):
     client = MlflowClient(tracking_uri=engines.mlflow_uri)
     exp_id = client.create_experiment("concurrent-writers")
     ctx = multiprocessing.get_context("spawn")
@@ -225,3 +238,136 @@ def test_eight_concurrent_writers_to_the_postgresql_backed_server_all_complete(e
         assert len(r.data.metrics) == 25 and r.data.tags["step"] == "19"
         history = client.get_metric_history(r.info.run_id, "m0")
         assert [m.value for m in sorted(history, key=lambda m: m.step)] == [float(index + s) for s in range(20)]
+
+
+# ---------------------------------------------------------------------------- the authenticated server
+
+SEARCH = "/api/2.0/mlflow/experiments/search?max_results=1"
+
+
+def test_an_unauthenticated_rest_request_gets_401_and_the_writer_gets_in(engines):
+    status, text = engines.rest("GET", SEARCH)
+    assert (status, text.startswith("You are not authenticated")) == (401, True)
+    assert engines.rest("GET", SEARCH, user=(engines.writer, "a-wrong-password-123"))[0] == 401
+    assert engines.rest("GET", SEARCH, user=(engines.writer, engines.passwords["writer"]))[0] == 200
+    assert engines.rest("GET", "/health")[0] == 200  # the one open route: a load balancer's probe
+
+
+def _runs_of_the_tree(engines, work):
+    """{run id: job key} of every run (any status, deleted ones too) the SLURM tree logged, read as the admin."""
+    import base64
+    import json
+    import urllib.request
+
+    found = {}
+    for name in ("dswm", "dswm-figures"):
+        status, text = engines.rest("GET", f"/api/2.0/mlflow/experiments/get-by-name?experiment_name={name}",
+                                    user=("admin", engines.passwords["admin"]))
+        assert status == 200, text
+        exp_id = json.loads(text)["experiment"]["experiment_id"]
+        req = urllib.request.Request(engines.mlflow_uri + "/api/2.0/mlflow/runs/search", method="POST",
+                                     data=json.dumps({"experiment_ids": [exp_id], "max_results": 1000,
+                                                      "run_view_type": "ALL"}).encode(),
+                                     headers={"Content-Type": "application/json", "Authorization": "Basic " +
+                                              base64.b64encode(f"admin:{engines.passwords['admin']}".encode())
+                                              .decode()})
+        with urllib.request.urlopen(req, timeout=30) as answer:
+            for run in json.loads(answer.read()).get("runs", []):
+                tags = {t["key"]: t["value"] for t in run["data"].get("tags", [])}
+                if tags.get("workdir") == str(work.resolve()):
+                    found[run["info"]["run_id"]] = tags.get("job_key")
+    return found
+
+
+def refusals(engines) -> int:
+    """How many requests the tracking server has answered 401 so far (its log has a line per request)."""
+    return (engines.root / "log" / "mlflow.out").read_text(errors="replace").count('" 401 ')
+
+
+def refusal(uri: str, call: str = "get_experiment_by_name") -> str:
+    """The error of a call the server at ``uri`` refused with 401, the credentials taken from the environment."""
+    return (f"MLflow at {uri}: {call} failed: the server refused the credentials (HTTP 401, not authenticated: user "
+            f"or password wrong or missing; they came from MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD in "
+            f"the environment); not retried")
+
+
+WRONG = "not-the-writers-password-987"
+
+
+def test_a_slurm_job_with_a_wrong_password_fails_naming_the_refusal_and_creates_no_run(slurm_run, engines):
+    """One SLURM job opens the run of an evaluate job (dswm.pipeline.tracking.job_run) with the writer's name and a
+    wrong password in its environment: it fails at its first request with the message of a refusal, and the server
+    holds no run of it."""
+    import json
+    import sys
+
+    work = slurm_run["work"]
+    before = _runs_of_the_tree(engines, work)
+    mlflow_cfg = {"tracking_uri": engines.mlflow_uri, "store": "results/mlflow.db",
+                  "artifacts": "results/mlartifacts", "experiment": "dswm", "batch_size": 1000,
+                  "http": {"max_retries": 5, "backoff_factor": 2, "timeout_s": 60}, "unlogged": "results/unlogged"}
+    script = work / "wrong_password_job.py"
+    script.write_text(
+        "import json, sys\n"
+        "from dswm.pipeline.tracking import job_run\n"
+        f"cfg = json.loads({json.dumps(json.dumps(mlflow_cfg))})\n"
+        "with job_run(mlflow_cfg=cfg, settings={'profile': 'smoke'}, stage='evaluate', dataset='milan',\n"
+        "             method='greedy', seed=77, config_hash='x', keep=['results/milan/greedy/seed0/days.parquet']):\n"
+        "    sys.exit('the body must not run')\n")
+    log = work / "logs" / "slurm" / "wrong_password_job.log"
+    env = {**os.environ, "MLFLOW_TRACKING_USERNAME": engines.writer, "MLFLOW_TRACKING_PASSWORD": WRONG,
+           "PYTHONPATH": f"{work / 'src'}{os.pathsep}{work}"}
+    refused = refusals(engines)
+    done = subprocess.run(["sbatch", "--wait", "--export=ALL", "--cpus-per-task=1", "--mem=1000",
+                           f"--output={log}", f"--wrap={sys.executable} {script.name}"],
+                          cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    text = log.read_text(errors="replace")
+    assert done.returncode != 0, text
+    assert refusal(engines.mlflow_uri) in text and "nothing was computed" in text
+    assert "the body must not run" not in text and WRONG not in text + done.stdout + done.stderr
+    assert not (work / "results" / "unlogged" / "evaluate" / "milan" / "greedy" / "seed77").exists()
+    assert refusals(engines) == refused + 1  # one request, refused, not retried (mlflow.http allows 5)
+    assert _runs_of_the_tree(engines, work) == before and "evaluate/milan/greedy/seed77" not in before.values()
+
+
+def test_a_workflow_with_a_wrong_password_stops_before_any_job_and_creates_no_run(slurm_run, engines, tmp_path):
+    """The SLURM tree's evaluation of greedy, forced to run again with a wrong password: the workflow stops as it
+    starts (its first request to the server), submits nothing, and its result file and the server's runs stay."""
+    from cluster.background import OVERLAY
+    from smoke import command
+
+    work = slurm_run["work"]
+    days = work / "results" / "milan" / "greedy" / "seed0" / "days.parquet"
+    before, data, refused = _runs_of_the_tree(engines, work), days.read_bytes(), refusals(engines)
+    argv, env = command(str(days.relative_to(work)), "--configfile", OVERLAY, "--executor", "slurm",
+                        "--profile", "profiles/slurm", "--jobs", "1", "--forcerun", "evaluate",
+                        config=[f"mlflow={{tracking_uri: '{engines.mlflow_uri}'}}"],
+                        env={"MLFLOW_TRACKING_USERNAME": engines.writer, "MLFLOW_TRACKING_PASSWORD": WRONG})
+    done = subprocess.run(argv, cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    out = done.stdout + done.stderr
+    assert done.returncode != 0, out[-4000:]
+    assert refusal(engines.mlflow_uri) in out and WRONG not in out
+    assert not SUBMITTED.search(out) and refusals(engines) == refused + 1
+    assert days.read_bytes() == data and _runs_of_the_tree(engines, work) == before
+
+
+def test_no_secret_shows_in_a_log_a_ps_listing_a_param_or_a_tag(slurm_run, engines, writer):
+    secrets = engines.secrets()
+    work, watch = slurm_run["work"], slurm_run["ps"]
+    # every `ps` listing taken while the SLURM run went: the jobs' command lines were among them, no secret was
+    assert watch.listings > 30 and watch.job_lines > 0
+    assert watch.leaks == []
+    # every log of the run: the rules' logs, SLURM's log of every job (all kept), Snakemake's own, and its output
+    logs = [p for d in ("logs", ".snakemake/log") for p in (work / d).rglob("*") if p.is_file()]
+    assert len(list((work / "logs" / "slurm").glob("rule_*/**/*.log"))) == 33  # SLURM's log of every job, kept
+    logs += [slurm_run["log"], *(engines.root / "log").rglob("*")]
+    leaked = [str(p) for p in logs if p.is_file() and any(s.encode() in p.read_bytes() for s in secrets)]
+    assert leaked == []
+    # every param and tag of every run the tree logged
+    client = MlflowClient(tracking_uri=engines.mlflow_uri)
+    exps = [client.get_experiment_by_name(n) for n in ("dswm", "dswm-figures")]
+    runs = client.search_runs([e.experiment_id for e in exps if e is not None], max_results=1000,
+                              filter_string=f"tags.workdir = '{work.resolve()}'")
+    assert len(runs) == 27
+    texts = [f"{k}={v}" for r in runs for k, v in (*r.data.params.items(), *r.data.tags.items())]
+    assert len(texts) > 27 * 10 and [t for t in texts if any(s in t for s in secrets)] == []

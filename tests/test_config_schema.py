@@ -281,6 +281,46 @@ def test_each_message_names_the_file_or_the_option_its_value_came_from(config):
     assert str(err.value) == "invalid configuration:\nconfig.yaml: key 'scenario.n_uavs' must be an integer >= 1; found 0"
 
 
+BELONG = ("refused; a tracking server's credentials belong in the environment (MLFLOW_TRACKING_USERNAME, "
+          "MLFLOW_TRACKING_PASSWORD) or in MLflow's credentials file ~/.mlflow/credentials, never in the config, whose "
+          "values reach the jobs' params and, through --config, the command line that `ps` shows (docs/CLUSTER.md)")
+
+
+@pytest.mark.parametrize("mutate, line", [
+    (lambda c: c["mlflow"].update(tracking_uri="http://alice:s3cr3t-pw@trackhost:5000"),
+     "config.yaml: key 'mlflow.tracking_uri' holds a URL with a user or password before its host "
+     "(scheme://user:password@host): " + BELONG),
+    (lambda c: c["mlflow"].update(tracking_uri="http://alice@trackhost:5000"),
+     "config.yaml: key 'mlflow.tracking_uri' holds a URL with a user or password before its host "
+     "(scheme://user:password@host): " + BELONG),
+    (lambda c: c["mlflow"].update(password="s3cr3t-pw"),
+     "config.yaml: key 'mlflow.password' is named like a credential ('password'): " + BELONG),
+    (lambda c: c["mlflow"]["http"].update(api_token="s3cr3t-pw"),
+     "config.yaml: key 'mlflow.http.api_token' is named like a credential ('api_token'): " + BELONG),
+    (lambda c: c.update(tracking={"username": "alice", "db_password": "s3cr3t-pw"}),
+     "config.yaml: key 'tracking.db_password' is named like a credential ('db_password'): " + BELONG),
+])
+def test_a_credential_in_the_config_is_refused_naming_the_key_never_its_value(config, mutate, line):
+    bad = copy.deepcopy(config)
+    mutate(bad)
+    msg = error_of(bad)
+    assert line in msg.splitlines() and "s3cr3t" not in msg and "alice" not in msg
+    if "tracking" not in bad:  # the credential's key is the only violation: its other lines are left out
+        assert msg == "invalid configuration:\n" + line
+
+
+def test_a_credential_passed_with_config_is_refused_naming_config_never_its_value(config):
+    merged, sources = with_cli(config, "mlflow={tracking_uri: 'http://alice:s3cr3t-pw@trackhost:5000'}")
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert str(err.value) == ("invalid configuration:\n--config: key 'mlflow.tracking_uri' holds a URL with a user or "
+                              "password before its host (scheme://user:password@host): " + BELONG)
+    merged, sources = with_cli(config, "mlflow={tracking_uri: 'http//alice:s3cr3t-pw@trackhost'}")  # malformed too
+    with pytest.raises(ConfigError) as err:
+        runconfig.resolve(merged, sources=sources)
+    assert "s3cr3t" not in str(err.value) and "'mlflow.tracking_uri'" in str(err.value)
+
+
 def test_snakemake_names_the_source_and_reads_nested_config_values(tmp_path):
     snakemake = os.path.join(os.path.dirname(sys.executable), "snakemake")
 

@@ -226,20 +226,26 @@ def test_a_tracking_failure_mid_job_keeps_the_result_files_and_names_them(store,
 
 
 class _Unavailable:
-    """An HTTP server on a loopback port that answers every request 503 and counts them."""
+    """An HTTP server on a loopback port that answers every request ``status`` (503 by default) with ``body`` and
+    counts the requests, keeping each one's Authorization header."""
 
-    def __init__(self):
+    def __init__(self, status: int = 503, body: bytes = b""):
         import http.server
         import threading
 
         hits = self.hits = []
+        self.auth = []
+        auth = self.auth
 
         class Handler(http.server.BaseHTTPRequestHandler):
             def _answer(self):
                 hits.append(self.path)
-                self.send_response(503)
-                self.send_header("Content-Length", "0")
+                auth.append(self.headers.get("Authorization"))
+                self.send_response(status)
+                self.send_header("Content-Type", "text/plain")
+                self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
+                self.wfile.write(body)
 
             do_GET = do_POST = do_PATCH = do_DELETE = _answer
 
@@ -281,6 +287,132 @@ def test_a_server_that_answers_503_is_retried_a_bounded_number_of_times_then_nam
         tracking.init_store(store=cfg["store"], artifacts=cfg["artifacts"], experiment="x",
                             tracking_uri=unavailable.url, http={"max_retries": 0, "backoff_factor": 0, "timeout_s": 5})
     assert len(unavailable.hits) == 4 and not (tmp_path / "unused.db").exists()
+
+
+# ---------------------------------------------------------------------------- a server that refuses the credentials
+
+NOT_AUTHENTICATED = (b"You are not authenticated. Please see https://www.mlflow.org/docs/latest/auth/index.html"
+                     b"#authenticating-to-mlflow on how to authenticate.")
+"""The answer of MLflow's basic-auth app to a request without valid credentials (HTTP 401)."""
+USER, PASSWORD = "writer", "a-password-of-the-writer-42"
+
+
+@pytest.fixture
+def credentials(monkeypatch, tmp_path):
+    """The writer's credentials in the environment, no credentials file (HOME is an empty directory), MLflow's own
+    HTTP settings unset."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("MLFLOW_TRACKING_USERNAME", USER)
+    monkeypatch.setenv("MLFLOW_TRACKING_PASSWORD", PASSWORD)
+    for var in tracking.HTTP_ENV.values():
+        monkeypatch.delenv(var, raising=False)
+
+
+def _server_cfg(url, tmp_path):
+    """The mlflow section of a job logging to the server at ``url``, with 5 retries: a refusal must use none."""
+    return {"tracking_uri": url, "store": str(tmp_path / "unused.db"), "artifacts": str(tmp_path / "a"),
+            "experiment": "x", "batch_size": 10, "http": {"max_retries": 5, "backoff_factor": 1, "timeout_s": 5},
+            "unlogged": str(tmp_path / "unlogged")}
+
+
+@pytest.mark.parametrize("status, body, said", [
+    (401, NOT_AUTHENTICATED, "the server refused the credentials (HTTP 401, not authenticated: user or password "
+                             "wrong or missing; they came from MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD "
+                             "in the environment); not retried: put this server's user and password in "
+                             "MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD or ~/.mlflow/credentials, never in "
+                             "config.yaml or on a command line (docs/CLUSTER.md)"),
+    (403, b"Permission denied", "the server refused the credentials (HTTP 403, permission denied: the user may not do "
+                                "this on the experiment; they came from MLFLOW_TRACKING_USERNAME and "
+                                "MLFLOW_TRACKING_PASSWORD in the environment); not retried: the server's admin grants "
+                                "the user EDIT or MANAGE on the experiment, or put this server's user and password "
+                                "in MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD or ~/.mlflow/credentials, "
+                                "never in config.yaml or on a command line (docs/CLUSTER.md)"),
+])
+def test_a_server_that_refuses_the_credentials_is_asked_once_and_the_job_fails_at_once(credentials, tmp_path,
+                                                                                      status, body, said):
+    import base64
+
+    server = _Unavailable(status, body)
+    try:
+        cfg = _server_cfg(server.url, tmp_path)
+        with pytest.raises(tracking.TrackingAuthError) as err:
+            with open_job(cfg, tmp_path, keep=[tmp_path / "days.parquet"]):
+                raise AssertionError("the body must not run")
+    finally:
+        server.close()
+    # one request, with the writer's credentials, and no retry although mlflow.http allows 5 (with backoff 1 s)
+    assert server.hits == ["/api/2.0/mlflow/experiments/get-by-name?experiment_name=x"]
+    assert server.auth == ["Basic " + base64.b64encode(f"{USER}:{PASSWORD}".encode()).decode()]
+    message = str(err.value)
+    assert message == (f"job evaluate/milan/static/seed0: MLflow at {server.url}: get_experiment_by_name failed: "
+                       f"{said}; nothing was computed, run the job again with credentials the server accepts")
+    assert PASSWORD not in message and USER not in message
+    assert not (tmp_path / "unlogged").exists()
+
+
+def test_a_403_for_the_host_header_names_allowed_hosts_not_the_credentials(credentials, tmp_path):
+    server = _Unavailable(403, b"Invalid Host header - possible DNS rebinding attack detected")
+    try:
+        with pytest.raises(tracking.TrackingAuthError) as err:
+            tracking.init_store(store=tmp_path / "unused.db", artifacts=tmp_path / "a", experiment="x",
+                                tracking_uri=server.url, http={"max_retries": 5, "backoff_factor": 1, "timeout_s": 5})
+    finally:
+        server.close()
+    assert len(server.hits) == 1
+    assert str(err.value) == (f"MLflow at {server.url}: get_experiment_by_name failed: the server refused the "
+                              f"request's Host header (HTTP 403: the server's --allowed-hosts does not list the host "
+                              f"and port of mlflow.tracking_uri); not retried")
+
+
+def test_credentials_refused_mid_job_keep_the_result_files_and_name_them(store, credentials, tmp_path, monkeypatch):
+    """The server stops accepting the job's credentials after the run started (its password changed, its user
+    removed): the job fails at that call, with the server's refusal named, and keeps its result files."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.protos.databricks_pb2 import UNAUTHENTICATED
+
+    cfg, info, client = store
+    cfg = {**cfg, "unlogged": str(tmp_path / "unlogged")}
+    days = tmp_path / "out" / "days.parquet"
+    calls = []
+
+    def log_artifact(self, run_id, local_path, artifact_path=None):  # what MLflow's REST client raises on a 401
+        calls.append(local_path)
+        raise MlflowException("API request to endpoint /api/2.0/mlflow/runs/log-artifact failed with error code 401 "
+                              f"!= 200. Response body: '{NOT_AUTHENTICATED.decode()}'", error_code=UNAUTHENTICATED)
+
+    monkeypatch.setattr(MlflowClient, "log_artifact", log_artifact)
+    with pytest.raises(tracking.TrackingAuthError) as err:
+        with open_job(cfg, tmp_path, keep=[days]) as run:
+            days.parent.mkdir()
+            days.write_bytes(b"the day results")
+            run.log_artifact(days)
+    kept = tmp_path / "unlogged" / "evaluate" / "milan" / "static" / "seed0"
+    assert str(err.value) == (
+        f"job evaluate/milan/static/seed0: MLflow at {info['tracking_uri']}: log_artifact failed: the server refused "
+        f"the credentials (HTTP 401, not authenticated: user or password wrong or missing; they came from "
+        f"MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD in the environment); not retried: put this server's "
+        f"user and password in MLFLOW_TRACKING_USERNAME / MLFLOW_TRACKING_PASSWORD or ~/.mlflow/credentials, never "
+        f"in config.yaml or on a command line (docs/CLUSTER.md); the job fails, its result files are kept in "
+        f"{kept}: days.parquet")
+    assert len(calls) == 1 and (kept / "days.parquet").read_bytes() == b"the day results"
+    assert client.get_run(run.run_id).info.status == "FAILED"
+
+
+def test_the_source_of_the_credentials_is_named_never_their_value(monkeypatch, tmp_path):
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.delenv("MLFLOW_TRACKING_USERNAME", raising=False)
+    monkeypatch.delenv("MLFLOW_TRACKING_PASSWORD", raising=False)
+    assert tracking.credentials_source() == ("none were given (MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD "
+                                             "unset, no ~/.mlflow/credentials)")
+    (home / ".mlflow").mkdir(parents=True)
+    (home / ".mlflow" / "credentials").write_text(f"[mlflow]\nmlflow_tracking_username = {USER}\n"
+                                                  f"mlflow_tracking_password = {PASSWORD}\n")
+    assert tracking.credentials_source() == (f"they came from mlflow_tracking_username and mlflow_tracking_password of "
+                                             f"{home}/.mlflow/credentials")
+    monkeypatch.setenv("MLFLOW_TRACKING_PASSWORD", "another-password-123")
+    assert tracking.credentials_source() == (f"they came from MLFLOW_TRACKING_PASSWORD in the environment and "
+                                             f"mlflow_tracking_username of {home}/.mlflow/credentials")
 
 
 # ---------------------------------------------------------------------------- a tree copied with its store

@@ -9,6 +9,12 @@ local one ran past its hang guard. The cluster tests, which pytest runs last, re
 It runs the smoke DAG of ONE dataset, Milan (the main table's, the only one every method runs on, and the
 calibration's): 33 SLURM jobs instead of the 75 of all three datasets, every rule and every method of the smoke
 profile among them, each job's fixed cost on SLURM (~12 s of a core, docs/CLUSTER.md) paid a third as often.
+
+The tracking server asks for credentials (basic-auth): Snakemake runs with the writer's user and password in its
+environment (``MLFLOW_TRACKING_USERNAME`` / ``MLFLOW_TRACKING_PASSWORD``), which SLURM passes to every job
+(``sbatch --export=ALL``), never on a command line. Every SLURM log is kept (``--slurm-keep-successful-logs``), and
+while the run goes the process list is read every second (:class:`ProcessWatch`), so that the cluster tests can check
+that no secret of the engines shows in a log or in ``ps``.
 """
 from __future__ import annotations
 
@@ -34,9 +40,45 @@ LIMIT_S = 2400
 """The hang guard of the SLURM run, not a budget: its 33 jobs took 12.8 min on this project's 2-core machine with
 another smoke run beside them (the whole smoke DAG's 75 took 15.1 min alone, and had not ended after 27 min beside
 the local run)."""
+PS_EVERY_S = 1.0
+"""How often the process list is read during the run (:class:`ProcessWatch`)."""
 INIT_STATUS_CHECK_S = 2
 """The first `sacct` query this long after a submission: the loopback cluster's accounting answers at once, where
 profiles/slurm's 10 s spare a real cluster's slurmdbd."""
+
+
+@dataclass
+class ProcessWatch:
+    """Reads every process's command line (``ps -eww -o pid=,args=``) every ``every_s`` seconds until stopped, and
+    keeps the lines that hold one of ``secrets`` (each secret shown as ``***``) and how many listings it took."""
+
+    secrets: list[str]
+    every_s: float = PS_EVERY_S
+    listings: int = 0
+    job_lines: int = 0
+    """Lines of SLURM job steps' Snakemake (``--target-jobs``) seen: proof that the listings saw the jobs."""
+    leaks: list[str] = field(default_factory=list)
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def start(self) -> "ProcessWatch":
+        threading.Thread(target=self._loop, name="ps-watch", daemon=True).start()
+        return self
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            listing = subprocess.run(["ps", "-eww", "-o", "pid=,args="], capture_output=True, text=True).stdout
+            self.listings += 1
+            for line in listing.splitlines():
+                self.job_lines += "--target-jobs" in line
+                if any(secret in line for secret in self.secrets):
+                    shown = line
+                    for secret in self.secrets:
+                        shown = shown.replace(secret, "***")
+                    self.leaks.append(shown.strip())
+            self._stop.wait(self.every_s)
+
+    def stop(self) -> None:
+        self._stop.set()
 
 
 @dataclass
@@ -55,6 +97,7 @@ class SlurmSmokeRun:
     argv: list[str] = field(default_factory=list)
     limit_s: float = LIMIT_S
     overrun: str | None = None
+    ps: ProcessWatch | None = None
 
     def launch(self) -> "SlurmSmokeRun":
         """Start the engines and the run; a failure is kept in ``error`` (the cluster tests fail naming it)."""
@@ -71,7 +114,10 @@ class SlurmSmokeRun:
             self.argv, env = command(*TARGETS, "--configfile", OVERLAY,
                                      "--executor", "slurm", "--profile", "profiles/slurm", "--jobs", "4",
                                      "--slurm-init-seconds-before-status-checks", str(INIT_STATUS_CHECK_S),
-                                     config=[f"mlflow={{tracking_uri: '{self.engines.mlflow_uri}'}}"])
+                                     "--slurm-keep-successful-logs",
+                                     config=[f"mlflow={{tracking_uri: '{self.engines.mlflow_uri}'}}"],
+                                     env=self.engines.credentials)
+            self.ps = ProcessWatch(secrets=self.engines.secrets()).start()
             with open(self.log, "wb") as out:
                 self.started = time.monotonic()
                 self.proc = subprocess.Popen(self.argv, cwd=self.work, env=env, stdout=out,
@@ -83,9 +129,10 @@ class SlurmSmokeRun:
         return self
 
     def _watch(self) -> None:
-        """Record when the run ends (its wall time), whenever the tests come to read it."""
+        """Record when the run ends (its wall time), whenever the tests come to read it; stop reading ``ps`` then."""
         self.proc.wait()
         self.ended = time.monotonic()
+        self.ps.stop()
 
     def settle(self) -> None:
         """Return once the run has ended, or once it has run ``limit_s`` (then it is stopped and ``overrun`` says how
@@ -116,6 +163,8 @@ class SlurmSmokeRun:
     def stop(self) -> None:
         """End the run if it still goes, then stop the engines."""
         self.end_run()
+        if self.ps is not None:
+            self.ps.stop()
         if self.engines is not None:
             self.engines.stop()
 

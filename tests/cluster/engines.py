@@ -7,8 +7,12 @@
   the test's record of every job) answers "accounting storage is disabled";
 * ``slurmctld`` and one ``slurmd`` on 127.0.0.1: cons_tres, no cgroup (proctrack/linuxproc, task/none), the
   machine's CPUs;
-* PostgreSQL and ``mlflow server`` with it as the backend store, the artifact root a local directory (the
-  "shared filesystem" of a one-node cluster).
+* PostgreSQL, its ``postgres`` user with a password (scram-sha-256) that only a ``.pgpass`` file holds
+  (``PGPASSFILE``), and ``mlflow server --app-name basic-auth`` with it as the backend store (a URI without the
+  password), the artifact root a local directory (the "shared filesystem" of a one-node cluster). The server's admin
+  is created from ``MLFLOW_AUTH_ADMIN_PASSWORD`` in its environment, and the admin creates the group's writer
+  (:attr:`LoopbackEngines.credentials`) through the server's REST API, as docs/CLUSTER.md does. Every password is
+  random, made at start, and on no command line (:meth:`LoopbackEngines.secrets` lists them for the tests).
 
 Every port is a free loopback port picked at start. :meth:`LoopbackEngines.stop` stops what was started, by PID,
 in reverse order. Nothing is installed here (``tests/cluster/install.sh`` does that); :func:`missing` names what
@@ -56,7 +60,8 @@ def missing() -> list[str]:
     if not PG_BIN or not (PG_BIN[-1] / "postgres").exists():
         absent.append("postgresql (/usr/lib/postgresql/*/bin/postgres)")
     for module, package in (("psycopg2", "psycopg2-binary"),
-                            ("snakemake_executor_plugin_slurm", "snakemake-executor-plugin-slurm")):
+                            ("snakemake_executor_plugin_slurm", "snakemake-executor-plugin-slurm"),
+                            ("flask_wtf", "Flask-WTF (mlflow[auth]: the basic-auth app of the tracking server)")):
         try:
             __import__(module)
         except ImportError:
@@ -121,6 +126,12 @@ class LoopbackEngines:
     ports: dict[str, int] = field(default_factory=dict)
     wrote_conf: bool = False
     pg_root: Path | None = None
+    passwords: dict[str, str] = field(default_factory=lambda: {
+        "postgres": secrets.token_urlsafe(18), "admin": secrets.token_urlsafe(18),
+        "writer": secrets.token_urlsafe(18), "flask_secret_key": secrets.token_urlsafe(24)})
+    """Made at start, each random; none is ever on a command line."""
+    writer: str = "dswm-writer"
+    """The group's writer on the tracking server: the user every job logs as."""
 
     # ---- addresses -------------------------------------------------------------------------------------------
     @property
@@ -134,6 +145,20 @@ class LoopbackEngines:
     @property
     def artifacts(self) -> Path:
         return self.root / "mlartifacts"
+
+    @property
+    def pgpass(self) -> Path:
+        """The ``.pgpass`` file (mode 0600) from which libpq takes the database password (``PGPASSFILE``)."""
+        return self.root / "pgpass"
+
+    @property
+    def credentials(self) -> dict[str, str]:
+        """The writer's credentials as a job's environment holds them (MLflow's client reads them there)."""
+        return {"MLFLOW_TRACKING_USERNAME": self.writer, "MLFLOW_TRACKING_PASSWORD": self.passwords["writer"]}
+
+    def secrets(self) -> list[str]:
+        """Every password and key of the engines: none may appear in a command line, a log, a param or a tag."""
+        return list(self.passwords.values())
 
     def pids(self) -> dict[str, int]:
         return {name: p.pid for name, p in self.procs}
@@ -272,8 +297,15 @@ class LoopbackEngines:
         (self.pg_root / "log").mkdir()
         for d in (self.pg_root, data, self.pg_root / "log"):
             shutil.chown(d, "postgres", "postgres")
-        self._run([str(bin_dir / "initdb"), "-D", str(data), "-A", "trust", "-U", "postgres", "--no-sync"],
-                  "PostgreSQL's data directory", user="postgres", group="postgres")
+        pwfile = self.pg_root / "pwfile"  # read once by initdb, then removed
+        pwfile.write_text(self.passwords["postgres"] + "\n")
+        pwfile.chmod(0o600)
+        shutil.chown(pwfile, "postgres", "postgres")
+        self._run([str(bin_dir / "initdb"), "-D", str(data), "-A", "scram-sha-256", "-U", "postgres",
+                   f"--pwfile={pwfile}", "--no-sync"], "PostgreSQL's data directory", user="postgres", group="postgres")
+        pwfile.unlink()
+        self.pgpass.write_text(f"127.0.0.1:{self.ports['postgres']}:*:postgres:{self.passwords['postgres']}\n")
+        self.pgpass.chmod(0o600)
         log = self.root / "log" / "postgres.log"
         proc = self._spawn("postgres", [str(bin_dir / "postgres"), "-D", str(data), "-p", str(self.ports["postgres"]),
                                         "-k", str(data), "-c", "listen_addresses=127.0.0.1", "-c", "fsync=off",
@@ -282,18 +314,58 @@ class LoopbackEngines:
         _wait(lambda: _listening(self.ports["postgres"]), "PostgreSQL", self.root / "log" / "postgres.out",
               proc=proc)
         _wait(lambda: subprocess.run([str(bin_dir / "createdb"), "-h", "127.0.0.1", "-p", str(self.ports["postgres"]),
-                                      "-U", "postgres", "mlflow"], capture_output=True).returncode == 0,
+                                      "-U", "postgres", "-w", "mlflow"], capture_output=True,
+                                     env={**os.environ, "PGPASSFILE": str(self.pgpass)}).returncode == 0,
               "the mlflow database", log, timeout=30)
 
     def _mlflow(self) -> None:
+        """The tracking server with MLflow's basic-auth app, as docs/CLUSTER.md starts it: the auth settings in a file
+        (``MLFLOW_AUTH_CONFIG_PATH``), the admin's password and the CSRF key in the server's environment, the database
+        password in ``.pgpass``; then the admin creates the writer."""
         self.artifacts.mkdir(parents=True, exist_ok=True)
+        auth = self.root / "basic_auth.ini"
+        auth.write_text("[mlflow]\ndefault_permission = READ\n"
+                        f"database_uri = sqlite:///{self.root / 'basic_auth.db'}\nadmin_username = admin\n"
+                        "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n")
+        auth.chmod(0o600)
+        env = {**os.environ, "MLFLOW_AUTH_CONFIG_PATH": str(auth), "PGPASSFILE": str(self.pgpass),
+               "MLFLOW_AUTH_ADMIN_PASSWORD": self.passwords["admin"],
+               "MLFLOW_FLASK_SERVER_SECRET_KEY": self.passwords["flask_secret_key"]}
+        for var in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD"):
+            env.pop(var, None)
         mlflow = str(Path(sys.executable).with_name("mlflow"))
         log = self.root / "log" / "mlflow.out"
-        proc = self._spawn("mlflow", [mlflow, "server", "--backend-store-uri", self.postgres_uri,
+        host = f"127.0.0.1:{self.ports['mlflow']}"
+        proc = self._spawn("mlflow", [mlflow, "server", "--app-name", "basic-auth",
+                                      "--backend-store-uri", self.postgres_uri,
                                       "--default-artifact-root", self.artifacts.as_uri(), "--no-serve-artifacts",
-                                      "--host", "127.0.0.1", "--port", str(self.ports["mlflow"]), "--workers", "2"])
+                                      "--host", "127.0.0.1", "--port", str(self.ports["mlflow"]),
+                                      "--allowed-hosts", host, "--workers", "2"], env=env)
         _wait(lambda: urllib.request.urlopen(f"{self.mlflow_uri}/health", timeout=2).status == 200,
               "mlflow server", log, timeout=180, proc=proc)
+        status, text = self.rest("POST", "/api/2.0/mlflow/users/create", user=("admin", self.passwords["admin"]),
+                                 body={"username": self.writer, "password": self.passwords["writer"]})
+        if status != 200:
+            raise RuntimeError(f"the tracking server's admin could not create the user {self.writer!r}: HTTP {status}: "
+                               f"{text[:500]}; end of {log}:\n{log.read_text(errors='replace')[-3000:]}")
+
+    def rest(self, method: str, path: str, *, user: tuple[str, str] | None = None, body: dict | None = None):
+        """(HTTP status, answer text) of a request to the tracking server, with basic authentication as ``user``
+        (name, password) where given; the credentials go in a header, never in a URL or an argv."""
+        import base64
+        import json
+        import urllib.error
+
+        req = urllib.request.Request(self.mlflow_uri + path, method=method,
+                                     data=None if body is None else json.dumps(body).encode(),
+                                     headers={"Content-Type": "application/json"})
+        if user is not None:
+            req.add_header("Authorization", "Basic " + base64.b64encode(":".join(user).encode()).decode())
+        try:
+            with urllib.request.urlopen(req, timeout=30) as answer:
+                return answer.status, answer.read().decode()
+        except urllib.error.HTTPError as err:
+            return err.code, err.read().decode(errors="replace")
 
 
 def main() -> None:

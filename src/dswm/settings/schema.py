@@ -18,6 +18,7 @@ import copy
 import dataclasses
 import difflib
 import importlib
+import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -115,6 +116,58 @@ def _describe(schema: Mapping[str, Any]) -> str:
     return f"{kind}" + (f" ({', '.join(bounds)})" if bounds else "")
 
 
+CREDENTIAL_KEY = re.compile(r"(?i)(^|[_-])(pass(word|wd)?|pwd|secret|token|credentials?|api[_-]?key)($|[_-])")
+"""A key named like a credential (``password``, ``db_password``, ``token``, ``api_key``, ...): refused at the top level
+and in the sections of :data:`CREDENTIAL_SECTIONS` (:func:`credential_errors`)."""
+CREDENTIAL_SECTIONS = ("mlflow", "tracking")
+"""The top-level keys under which a key named like a credential is refused at any depth: the tracking section, and the
+name a user might give a new one."""
+URL_USERINFO = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^/?#\s@]*@|[^\s/@:]+:[^\s/@]+@")
+"""A URL that carries a user (and password) before its host, ``scheme://user:password@host``, or a ``user:password@``
+in any string (a malformed URL too)."""
+BEFORE_AT = re.compile(r"[^\s/@]+@")
+"""What stands before an ``@`` up to a slash or a space: replaced by ``***`` in every value a message shows."""
+CREDENTIALS_BELONG = ("a tracking server's credentials belong in the environment (MLFLOW_TRACKING_USERNAME, "
+                      "MLFLOW_TRACKING_PASSWORD) or in MLflow's credentials file ~/.mlflow/credentials, never in the "
+                      "config, whose values reach the jobs' params and, through --config, the command line that `ps` "
+                      "shows (docs/CLUSTER.md)")
+"""Where credentials go, said by every refusal of one in the config."""
+
+
+def _redacted(value: Any) -> Any:
+    """``value`` with the user and password of any URL in it replaced by ``***`` (a message never shows them)."""
+    return BEFORE_AT.sub("***@", value) if isinstance(value, str) else value
+
+
+def credential_errors(config: Mapping[str, Any]) -> dict[tuple, str]:
+    """The config's places that hold credentials, each with its message (the value never shown): a URL with a user
+    or password anywhere (``mlflow.tracking_uri: http://user:password@host``), and a key named like a credential
+    (:data:`CREDENTIAL_KEY`) at the top level or in a section of :data:`CREDENTIAL_SECTIONS`.
+
+    Returns:
+        {path of the key: "config.yaml: key '<key>' ...; <where credentials belong>"}; empty when there is none.
+    """
+    found: dict[tuple, str] = {}
+
+    def walk(node: Any, path: tuple) -> None:
+        if isinstance(node, Mapping):
+            for key, sub in node.items():
+                named = CREDENTIAL_KEY.search(str(key)) and (not path or path[0] in CREDENTIAL_SECTIONS)
+                if named:
+                    found[(*path, key)] = f"is named like a credential ({key!r})"
+                else:
+                    walk(sub, (*path, key))
+        elif isinstance(node, list):
+            for i, sub in enumerate(node):
+                walk(sub, (*path, i))
+        elif isinstance(node, str) and URL_USERINFO.search(node):
+            found[path] = "holds a URL with a user or password before its host (scheme://user:password@host)"
+
+    walk(config, ())
+    return {path: f"config.yaml: key '{_key(path)}' {what}: refused; {CREDENTIALS_BELONG}"
+            for path, what in found.items()}
+
+
 def _message(err: jsonschema.ValidationError, source: str) -> str:
     """One readable line for a schema violation: the key, what was expected, what was found."""
     where = _key(err.absolute_path)
@@ -140,12 +193,13 @@ def _message(err: jsonschema.ValidationError, source: str) -> str:
         missing = err.message.split("'")[1]
         sub = err.schema.get("properties", {}).get(missing, {})
         return f"{source}: missing key '{_key([*err.absolute_path, missing])}' (expected {_describe(sub)})"
-    return f"{source}: key '{where}' must be {_describe(err.schema)}; found {err.instance!r}"
+    return f"{source}: key '{where}' must be {_describe(err.schema)}; found {_redacted(err.instance)!r}"
 
 
 def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, source: str = "config.yaml",
                     sources: ConfigSources | None = None) -> None:
-    """Check ``config`` against the schema; raise ConfigError listing every violation, one per line.
+    """Check ``config`` against the schema; raise ConfigError listing every violation, one per line. Credentials in
+    the config (:func:`credential_errors`) are refused first, never shown, with where they belong.
 
     Args:
         config: the parsed config.yaml (with any ``--configfile`` and ``--config`` overrides applied).
@@ -154,20 +208,23 @@ def validate_config(config: Mapping[str, Any], schema: Mapping[str, Any], *, sou
         sources: where each value came from (:class:`dswm.config.ConfigSources`); each line then names the layer
             of its key instead of ``source``, and a string that ``--config`` passed says so.
     """
+    refused = credential_errors(config)  # first; the schema's lines on the same keys left out (no value is shown)
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: (list(map(str, e.absolute_path)), e.message))
-    if not errors:
+    if not errors and not refused:
         return
-    lines = []
+    keys = [_key(path) for path in refused]
+    lines = [sources.relabel(line) if sources is not None else line for line in refused.values()]
     for err in errors:
         line = _message(err, source)
         if sources is not None:
             line = sources.relabel(line)
             if isinstance(err.instance, str) and sources.of(list(err.absolute_path)) == ConfigSources.CLI:
-                line += (f" (--config passed it as the string {err.instance!r}: Snakemake reads a value nested in "
-                         f"--config as a string, taken here as a number, boolean or null only where the schema "
-                         f"expects one)")
-        lines.append(line)
+                line += (f" (--config passed it as the string {_redacted(err.instance)!r}: Snakemake reads a value "
+                         f"nested in --config as a string, taken here as a number, boolean or null only where the "
+                         f"schema expects one)")
+        lines.extend(one for one in line.split("\n")
+                     if not any(re.search(rf"key '{re.escape(k)}[.\[']", one) for k in keys))
     raise ConfigError("invalid configuration:\n" + "\n".join(lines))
 
 

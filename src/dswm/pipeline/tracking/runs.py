@@ -16,8 +16,8 @@ from typing import Any, Iterator, Mapping, Sequence
 from mlflow.entities import Metric, Param, RunStatus
 from mlflow.tracking import MlflowClient
 
-from dswm.pipeline.tracking.client import (MAX_PARAM_CHARS, MAX_PARAMS_PER_BATCH, TrackingError, retry, uses_server,
-                                           workdir_tag)
+from dswm.pipeline.tracking.client import (MAX_PARAM_CHARS, MAX_PARAMS_PER_BATCH, TrackingAuthError, TrackingError,
+                                           retry, uses_server, workdir_tag)
 from dswm.pipeline.tracking.store import TREE_TAG, adopt_store, main_experiment, run_experiments, store_client
 from prep.atomic import atomic_path
 
@@ -155,7 +155,8 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
 
     Raises:
         TrackingError: a tracking call failed after its retries; the message names the store, the call, the job
-            and the kept files.
+            and the kept files. :class:`TrackingAuthError` (a subclass) when the server refused the credentials:
+            not retried, the files kept alike.
     """
     client = store_client(mlflow_cfg)
     key = f"{stage}/{dataset}/{method}/seed{seed}"
@@ -172,8 +173,9 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
         for stale in _runs_of(client, both, key, "RUNNING", workdir):  # left behind by a killed job
             retry(client.set_terminated, stale.info.run_id, RunStatus.to_string(RunStatus.KILLED))
     except TrackingError as err:
-        raise TrackingError(f"job {key}: {err}; nothing was computed, run the job again once the tracking store "
-                            f"answers") from err
+        again = ("with credentials the server accepts" if isinstance(err, TrackingAuthError) else
+                 "once the tracking store answers")
+        raise type(err)(f"job {key}: {err}; nothing was computed, run the job again {again}") from err
     tags = {"job_key": key, "kind": kind, "stage": stage, "dataset": dataset, "method": method, "seed": str(seed),
             "workdir": workdir, "profile": settings["profile"], "git_commit": git_commit(repo),
             "config_hash": config_hash, "mlflow.runName": f"{stage}:{dataset}/{method}/seed{seed}"}
@@ -220,7 +222,7 @@ def job_run(*, mlflow_cfg: Mapping[str, Any], settings: Mapping[str, Any], stage
             kept = keep_unlogged(keep, keep_dir)
             what = (f"its result files are kept in {keep_dir}: {', '.join(p.name for p in kept)}" if kept else
                     "no result file had been written yet")
-            raise TrackingError(f"job {key}: {err}; the job fails, {what}") from err
+            raise type(err)(f"job {key}: {err}; the job fails, {what}") from err
         raise
     finally:
         for signum, handler in previous.items():

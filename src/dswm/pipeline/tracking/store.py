@@ -12,8 +12,8 @@ from urllib.parse import unquote, urlparse
 from mlflow.entities import RunStatus
 from mlflow.tracking import MlflowClient
 
-from dswm.pipeline.tracking.client import (TrackingError, client_for, retry, sqlite_uri, tracking_uri, uses_server,
-                                           workdir_tag)
+from dswm.pipeline.tracking.client import (TrackingAuthError, TrackingError, client_for, retry, sqlite_uri,
+                                           tracking_uri, uses_server, workdir_tag)
 
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 """The experiment tag that makes the MLflow UI open on the training-runs view (without it, MLflow 3 opens on
@@ -64,6 +64,8 @@ def _ensure_experiment(client: MlflowClient, experiment: str, part: str, locatio
     if found is None:
         try:
             exp_id = retry(client.create_experiment, names[part], artifact_location=location)
+        except TrackingAuthError:
+            raise
         except TrackingError:  # another workflow (or job) on the same store created it first
             found = retry(client.get_experiment_by_name, names[part])
             if found is None:
