@@ -135,14 +135,16 @@ def ceiling_search(x: torch.Tensor, starts: torch.Tensor, start_logits: torch.Te
         return plan.reshape(b, s, k, 2), logit.reshape(b, s, k), torch.ones(b, s)
     x, cells = x[:, cols].repeat_interleave(s, dim=0), cells[cols]  # (N, G')
     search = _Sweep(settings=settings, cells=cells, geom=geom, params=params)
-    active = torch.arange(b * s)
+    # A start that already serves the whole map is left alone: no move can gain more than MIN_GAIN on 1.0, so the
+    # search would move nothing there (holiday and sparse slots, where most starts serve everything).
+    active = torch.arange(b * s)[search.score(x, plan.unsqueeze(1), logit.unsqueeze(1)).squeeze(1) < 1.0]
     for _ in range(settings.sweeps):
+        if active.numel() == 0:
+            break
         p, lg = search(x[active], plan[active], logit[active])
         moved = (p != plan[active]).any(dim=2).any(dim=1) | (lg != logit[active]).any(dim=1)
         plan[active], logit[active] = p, lg
         active = active[moved]
-        if active.numel() == 0:
-            break
     sr = search.score(x, plan.unsqueeze(1), logit.unsqueeze(1)).reshape(b, s)
     return plan.reshape(b, s, k, 2), logit.reshape(b, s, k), sr
 
