@@ -126,6 +126,9 @@ def test_foresight_table_cuts_the_main_files_to_the_grids_days_and_gives_the_sha
     assert get[("alg1", "model", 0.0)]["vs_greedy"] == pytest.approx(-0.08)
     assert get[("alg1", "persistence", None)]["status"] == "extra"
     assert get[("alg1", "true", None)]["status"] == "not run" and get[("alg1", "true", None)]["sr_mean"] is None
+    assert get[("alg1", "true", None)]["note"].startswith("not run: the profile does not evaluate")
+    assert get[("plus", "true", None)]["note"].startswith("given maps: no anchoring (rho does not apply)")
+    assert get[("plus", "model", 0.0)]["note"] is None
     out = {k: tmp_path / f"foresight.{k}" for k in ("png", "pdf", "csv")}
     draw_foresight(table, {}, dataset_labels={"milan": "Milan"}, profile="smoke", source="demo", out=out)
     csv = read_csv(out["csv"])

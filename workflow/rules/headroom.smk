@@ -22,7 +22,7 @@ if _FORESIGHT:
         output:
             **figure_outputs("foresight", "Where foresight pays"),
         params:
-            attach=figure_attach(["evaluate", "extra"], list(_FORESIGHT),
+            attach=figure_attach(["evaluate", "extra", "wm"], list(_FORESIGHT),
                                  ["greedy", "perfect", *dict.fromkeys(S.SOURCE_METHODS.values())]),
             profile=PROFILE,
             cells={d: plain_cells(c) for d, c in _FORESIGHT.items()},

@@ -24,6 +24,10 @@ CAPTION = ("Issue 33 (foresight): (a) served ratio per demand source x planner (
            "on the wm_quality replay's days.")
 
 
+GIVEN_MAPS = "given maps: no anchoring (rho does not apply) and no uncertainty term"
+NOT_RUN = "not run: the profile does not evaluate this cell's method (or dswm, whose planner it takes) here"
+
+
 def source_label(source: str, rho: float | None) -> str:
     """The x-axis label of a demand source: "persistence", "true maps" or "model, rho 0.95"."""
     if source == "model":
@@ -60,7 +64,7 @@ def foresight_table(main: pl.DataFrame, runs: pl.DataFrame | None, cells: Mappin
         seeds: {dataset: the seeds of the grid there}; limits: the grid's day limits (``figures.foresight``).
     Returns:
         dataset, planner, source, rho, method, variant (null: the main evaluation), status ("main", "extra" or
-        "not run"), sr_mean, sr_mean_std, seeds, days (per seed), greedy_sr, perfect_sr, vs_greedy (sr_mean -
+        "not run"), note (why rho is empty, or why a cell did not run), sr_mean, sr_mean_std, seeds, days (per seed), greedy_sr, perfect_sr, vs_greedy (sr_mean -
         greedy_sr) and share_of_room ((sr_mean - greedy) / (perfect - greedy), null where the room is 0).
     Raises:
         ValueError: an extra run covers other days than its main reference, or a cell's run is missing.
@@ -102,6 +106,11 @@ def foresight_table(main: pl.DataFrame, runs: pl.DataFrame | None, cells: Mappin
                                        "rho": pl.Float64, "method": pl.String, "variant": pl.String,
                                        "status": pl.String, "sr_mean": pl.Float64, "sr_mean_std": pl.Float64,
                                        "seeds": pl.Int64, "days": pl.Int64})
+    notes = {"persistence": GIVEN_MAPS, "true": GIVEN_MAPS}
+    table = table.with_columns(
+        pl.when(pl.col("status") == "not run").then(pl.lit(NOT_RUN))
+        .when(pl.col("planner") != "reference").then(pl.col("source").replace_strict(notes, default=None))
+        .otherwise(None).alias("note"))
     refs = table.filter(pl.col("planner") == "reference").select(
         "dataset", pl.col("source"), "sr_mean").pivot(on="source", index="dataset", values="sr_mean")
     refs = refs.rename({c: f"{c}_sr" for c in refs.columns if c != "dataset"})
