@@ -167,11 +167,11 @@ def test_headroom_table_gives_room_and_motion_cost_and_names_the_regimes(tmp_pat
     assert slow["ceiling"] == pytest.approx(0.93)                              # the ceiling does not depend on D_max
     assert slow["share_ceiling_room"] == pytest.approx(0.04 / (0.93 - 0.65))
     assert get[(own, 2.0)]["room"] == pytest.approx(0.01) and get[(250.0, 2.0)]["ceiling"] == pytest.approx(0.85)
-    assert table.filter(pl.col("named"))["regime"].to_list() == ["milan, D_max 250 m, u x 1.0"]
+    assert table.filter(pl.col("named"))["regime"].to_list() == ["milan, D_max 250 m, u x 1"]
     out = {k: tmp_path / f"headroom.{k}" for k in ("png", "pdf", "csv")}
     draw_headroom(table, min_room=0.02, dataset_labels={"milan": "Milan"}, profile="smoke", source="demo", out=out)
     first = out["csv"].read_text().splitlines()[0]
-    assert "Room >= 0.02 in: milan, D_max 250 m, u x 1.0." in first
+    assert "Room >= 0.02 in: milan, D_max 250 m, u x 1." in first
     assert read_csv(out["csv"]).height == 4
 
 

@@ -19,7 +19,7 @@ from dswm.settings import EvalDayLimits
 PLANNER_LABELS = {"alg1": "Algorithm 1 (dswm's planner)", "plus": "DSWM+'s planner"}
 CAPTION = ("Issue 33 (foresight): (a) served ratio per demand source x planner (persistence; world model anchored "
            "by rho; true future maps), mean over seeds of each seed's mean day, with Greedy (dashed) and Perfect "
-           "forecast (dotted); hatched: no run (a method the profile does not evaluate there); (b) the world model's "
+           "forecast (dotted); 'not run': a method the profile does not evaluate there; (b) the world model's "
            "demand RMSE (rho 0: the ensemble mean; anchored: rho 0.95) against persistence's per imagination step, "
            "on the wm_quality replay's days.")
 
@@ -152,10 +152,12 @@ def draw_foresight(table: pl.DataFrame, rmse: Mapping[str, pl.DataFrame], *, dat
                                   & (pl.col("rho").eq_missing(rho)))
                 pos = x - 0.4 + width * (i + 0.5)
                 if row["sr_mean"][0] is None:
-                    ax.bar(pos, 0.0, width, color="none", edgecolor="0.6", hatch="//")
+                    ax.text(pos, 0.5, "not run", transform=ax.get_xaxis_transform(), rotation=90, ha="center",
+                            va="center", fontsize=7, color="0.4")
                     continue
-                ax.bar(pos, row["sr_mean"][0], width, yerr=row["sr_mean_std"][0] if row["seeds"][0] > 1 else None,
-                       color=colors[i], capsize=2, label=PLANNER_LABELS.get(planner, planner) if x == 0 else None)
+                ax.errorbar(pos, row["sr_mean"][0], yerr=row["sr_mean_std"][0] if row["seeds"][0] > 1 else None,
+                            fmt="os"[i % 2], ms=7, color=colors[i], capsize=2,
+                            label=PLANNER_LABELS.get(planner, planner) if x == 0 else None)
         refs = table.filter((pl.col("dataset") == dataset) & (pl.col("planner") == "reference"))
         for name, style in (("greedy", "--"), ("perfect", ":")):
             value = refs.filter(pl.col("source") == name)["sr_mean"]
@@ -168,6 +170,7 @@ def draw_foresight(table: pl.DataFrame, rmse: Mapping[str, pl.DataFrame], *, dat
         ax.set_xticks(range(len(keys)), [source_label(s, r) for s, r in keys], rotation=20, fontsize=8)
         ax.set_ylabel("served ratio")
         ax.set_title(f"(a) {dataset_labels.get(dataset, dataset)}", fontsize=10)
+        ax.set_xlim(-0.6, len(keys) - 0.4)
         ax.grid(alpha=0.3, axis="y")
         if j == 0:
             ax.legend(fontsize=7)

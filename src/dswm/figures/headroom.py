@@ -89,10 +89,11 @@ def headroom_table(main: pl.DataFrame, runs: pl.DataFrame | None, *, datasets: S
                                pl.when(pl.col("ceiling") != pl.col("greedy"))
                                .then(room / (pl.col("ceiling") - pl.col("greedy"))).otherwise(None)
                                .alias("share_ceiling_room"))
-    named = pl.col("room").fill_null(-1.0) >= float(min_room)
-    regime = pl.format("{}, D_max {} m, u x {}", pl.col("dataset"), pl.col("d_max_m").round(0).cast(pl.Int64),
-                       pl.col("factor"))
-    return table.with_columns(named.alias("named"), pl.when(named).then(regime).otherwise(None).alias("regime"))
+    named = (table["room"].fill_null(-1.0) >= float(min_room)).to_list()
+    regimes = [f"{r['dataset']}, D_max {r['d_max_m']:g} m, u x {r['factor']:g}" if ok else None
+               for r, ok in zip(table.iter_rows(named=True), named)]
+    return table.with_columns(pl.Series("named", named, dtype=pl.Boolean), pl.Series("regime", regimes,
+                                                                                      dtype=pl.String))
 
 
 def draw_headroom(table: pl.DataFrame, *, min_room: float, dataset_labels: Mapping[str, str], profile: str,
@@ -121,7 +122,9 @@ def draw_headroom(table: pl.DataFrame, *, min_room: float, dataset_labels: Mappi
             im = ax.imshow(grid, cmap="RdBu_r" if column == "room" else "Oranges", origin="lower",
                            vmin=-lim if column == "room" else 0.0, vmax=lim, aspect="auto")
             for (a, b), v in np.ndenumerate(grid):
-                ax.text(b, a, "--" if np.isnan(v) else f"{v:+.3f}", ha="center", va="center", fontsize=8)
+                dark = not np.isnan(v) and abs(v) > 0.6 * lim
+                ax.text(b, a, "--" if np.isnan(v) else f"{v:+.3f}", ha="center", va="center", fontsize=8,
+                        color="white" if dark else "black")
                 if column == "room" and not np.isnan(v) and v >= min_room:
                     ax.add_patch(plt.Rectangle((b - 0.5, a - 0.5), 1, 1, fill=False, ec="k", lw=2))
             ax.set_xticks(range(len(ds)), [f"{d:g}" for d in ds])
