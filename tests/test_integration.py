@@ -445,6 +445,38 @@ def test_every_figure_is_written_with_its_data_caption_and_profile(run):
     assert len(probes) >= 2 and chk["evidence"]["probe_files"] == probes
 
 
+def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_evaluations_on_the_same_days(run):
+    """Issue 33: every cell of the foresight grid is a main evaluation or an extra run (rho0, alg1) on every dataset;
+    the headroom map's own cell is the main evaluations' first ID day, the ceiling's value stands in every D_max
+    column, and the CSV names exactly the cells whose room reaches min_room."""
+    fig = run / "results" / "figures"
+    for name in ("foresight", "headroom"):
+        assert (fig / f"{name}.png").read_bytes()[:4] == b"\x89PNG", name
+        first = (fig / f"{name}.csv").read_text().splitlines()[0]
+        assert first.startswith(f"# Issue 33 ({name})") and first.endswith("(profile: smoke)"), first
+    grid = pl.read_csv(fig / "foresight.csv", comment_prefix="#").filter(pl.col("panel") == "a")
+    for ds in ("milan", "shanghai", "yjmob"):
+        part = grid.filter((pl.col("dataset") == ds) & (pl.col("planner") != "reference"))
+        assert part.group_by("status").len().sort("status").rows() == [("extra", 4), ("main", 4)], ds
+        own = part.filter((pl.col("planner") == "plus") & (pl.col("source") == "model") & (pl.col("rho") == 0.95))
+        assert own["sr_mean"].to_list() == [pytest.approx(seed_score(run, ds, "dswm_plus", "id"), abs=1e-12)]
+        extra = part.filter(pl.col("variant") == "alg1")["method"].sort().to_list()
+        assert extra == ["dswm_plus_persist", "perfect"]
+    assert set(pl.read_csv(fig / "foresight.csv", comment_prefix="#").filter(pl.col("panel") == "b")["dataset"]) == {
+        "milan", "shanghai", "yjmob"}                       # the world model's RMSE of every dataset
+    table = pl.read_csv(fig / "headroom.csv", comment_prefix="#")
+    assert table.height == 2 * 2 * 2                        # smoke: Milan, Shanghai x D_max {500, 1500} x u {1, 2}
+    for ds in ("milan", "shanghai"):
+        own = table.filter((pl.col("dataset") == ds) & (pl.col("d_max_m") == 1500.0) & (pl.col("factor") == 1.0))
+        assert own["greedy"].to_list() == [pytest.approx(seed_score(run, ds, "greedy", "id"), abs=1e-12)]
+        assert own["ceiling"].to_list() == [pytest.approx(seed_score(run, ds, "ceiling", "id"), abs=1e-12)]
+        heavy = table.filter((pl.col("dataset") == ds) & (pl.col("factor") == 2.0))
+        assert heavy["ceiling"].n_unique() == 1            # no motion limit: one run serves every D_max
+    room = table["perfect"] - table["greedy"]
+    assert table["named"].to_list() == (room >= 0.02).to_list()
+    assert table.filter(pl.col("named"))["regime"].null_count() == 0
+
+
 def test_the_mlflow_experiment_opens_on_runs_and_each_evaluation_records_its_demand_tensor(run):
     from prep.rawio import sha256_file
 
@@ -457,7 +489,10 @@ def test_the_mlflow_experiment_opens_on_runs_and_each_evaluation_records_its_dem
         assert (entry.dataset.name, entry.dataset.digest) == (r.data.tags["dataset"], digests[r.data.tags["dataset"]])
     dswm = next(r for r in runs if (r.data.tags["dataset"], r.data.tags["method"]) == ("milan", "dswm"))
     logged = {a.path for a in client.list_artifacts(dswm.info.run_id, "figures")}
-    assert {"figures/main.png", "figures/ood.png", "figures/ablation.png", "figures/wm_quality.png"} <= logged
+    assert {"figures/main.png", "figures/ood.png", "figures/ablation.png", "figures/wm_quality.png",
+            "figures/foresight.png"} <= logged
+    greedy = next(r for r in runs if (r.data.tags["dataset"], r.data.tags["method"]) == ("shanghai", "greedy"))
+    assert "figures/headroom.png" in {a.path for a in client.list_artifacts(greedy.info.run_id, "figures")}
     # the experiment holds the tables' runs alone (kind main); the figures' runs are in <experiment>-figures
     main = client.search_runs([exp.experiment_id], max_results=1000)
     assert {(r.data.tags["kind"], r.data.tags["stage"]) for r in main} == {("main", "train"), ("main", "evaluate")}

@@ -253,6 +253,25 @@ def main_days(methods, seeds):
     return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
 
 
+# Issue 33's figures (headroom.smk): their runs are extra_evaluate's, on datasets of their own.
+def extra_files_of(jobs):
+    """The days.parquet of the extra runs ``jobs``: (dataset, variant, method, seed) tuples
+    (dswm.settings.foresight_jobs, headroom_jobs)."""
+    return [rules.extra_evaluate.output.days.format(dataset=d, variant=v, method=m, seed=s) for d, v, m, s in jobs]
+
+
+def figure_main_files(datasets, methods):
+    """The main evaluations' days.parquet of ``methods`` on ``datasets`` that the profile evaluates there, for the
+    seeds of `figures.seeds` it runs there (dswm.settings.figure_seeds)."""
+    return [rules.evaluate.output.days.format(dataset=d, method=m, seed=s) for d in datasets
+            for m in dict.fromkeys(methods) if m in SETTINGS.methods_on(d) for s in S.figure_seeds(SETTINGS, d)]
+
+
+def plain_cells(cells):
+    """The foresight grid's cells (dswm.settings.foresight_cells) as params: each variant by its name."""
+    return [{**c, "variant": None if c["variant"] is None else c["variant"].name} for c in cells]
+
+
 # The sample-efficiency probe (probes.smk): PROBE_JOBS and the probe rule are defined there.
 def probe_files():
     """The probe file of every probe job of the profile (audit.smk reads those that exist)."""

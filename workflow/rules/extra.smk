@@ -2,13 +2,16 @@
 # two figures. Each run is the main evaluation with one change, its `variant`: do<s> (the planner's imagined demand
 # x s, `planner.imagine_scale`), K<k> (the fleet size) or u<f> (the demand intensity x f, after calibration); on
 # `figures.dataset`, seeds `figures.seeds`, days `figures.eval_days`; sized per profile (config.yaml `figures`).
+# The same two rules run the foresight grid's and the headroom map's runs (headroom.smk: rho<r>, alg1, D<m>[u<f>],
+# on their own datasets and days, dswm.settings.variant_days).
 # A learning method evaluates the main train rule's model when the variant's train slice is the main one's (a do
 # variant), else the model `extra_train` fits under the variant. Outputs under results/extra/: never a table's
 # source. The reference points (s = 1, the scenario's own K, u x 1) are the main evaluations on the same days.
 from dswm.figures.ablation import ABLATION_METHODS
 
-EXTRA_VARIANTS = {v.name: v for v in S.extra_variants(SETTINGS)}
-"""{name: dswm.settings.Variant} of every extra run the figures need."""
+EXTRA_VARIANTS = {v.name: v for v in S.figure_variants(SETTINGS)}
+"""{name: dswm.settings.Variant} of every extra run the figures need (those of the foresight grid and the headroom
+map, headroom.smk, included)."""
 EXTRA_DIR = "results/extra/{dataset}/{variant}/{method}/seed{seed}"
 FIG_DATASET = FIGURES_SETTINGS.dataset
 _missing_seeds = sorted(set(FIGURES_SETTINGS.seeds) - set(SETTINGS.seeds(FIG_DATASET)))
@@ -18,7 +21,9 @@ if _missing_seeds:
         f"{FIG_DATASET} (profiles.{PROFILE}.seeds.{FIG_DATASET}: {SETTINGS.seeds(FIG_DATASET)}); the extra runs are "
         f"compared with those main evaluations"))
 
-for _v, _m, _s in S.extra_jobs(SETTINGS):  # a do variant of a method without an imagined demand stops here
+_FIGURE_JOBS = [(_v, _m, _s) for _v, _m, _s in S.extra_jobs(SETTINGS)]
+_FIGURE_JOBS += [(_v, _m, _s) for _d, _v, _m, _s in S.foresight_jobs(SETTINGS) + S.headroom_jobs(SETTINGS)]
+for _v, _m, _s in _FIGURE_JOBS:  # a do variant of a method without an imagined demand stops here
     try:
         S.variant_evaluate_slice(SETTINGS, _m, EXTRA_VARIANTS[_v])
     except ConfigError as err:

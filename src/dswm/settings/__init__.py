@@ -40,13 +40,17 @@ from dswm.settings.sections import (CalibrationSettings, Display, DoProbeSetting
                                     EvaluationSettings, FiguresSettings, JobResources, MlflowHttp, MlflowSettings,
                                     ResourceSettings, RoomSettings, Runtime, RunSettings, SampleEfficiencySettings,
                                     ScalingSettings, SelectionSettings, SplitLabels, TablesSettings,
-                                    WmQualitySettings, figures_settings, resource_settings)
+                                    WmQualitySettings, ForesightSettings, HeadroomSettings, figures_settings,
+                                    resource_settings)
 from dswm.settings.slices import (Untracked, audit_slice, calibrate_slice, eda_slice, evaluate_slice,
                                   experiment_slice, figures_slice, mlflow_slice, param, prep_slice, probe_slice,
                                   read_param, runtime, select_slice, tables_slice, tracking, train_slice,
                                   variant_evaluate_slice, variant_retrains, variant_train_slice)
-from dswm.settings.variants import (VARIANT_KINDS, Variant, extra_jobs, extra_variants, parse_variant,
-                                    probe_jobs, probed_methods, scale_intensity, variant_methods, variant_settings)
+from dswm.settings.variants import (ALGORITHM_1, HEADROOM_METHODS, PLANNERS, SOURCE_METHODS, SOURCES, VARIANT_KINDS,
+                                    Variant, extra_jobs, extra_variants, figure_seeds, figure_variants,
+                                    foresight_cells, foresight_jobs, headroom_jobs, headroom_variant, parse_variant,
+                                    probe_jobs, probed_methods, scale_intensity, variant_days, variant_methods,
+                                    variant_settings)
 
 __all__ = [
     "ConfigError", "build",
@@ -60,10 +64,12 @@ __all__ = [
     "CalibrationSettings", "Display", "DoProbeSettings", "EvalDayLimits", "EvaluationSettings", "FiguresSettings",
     "JobResources", "MlflowHttp", "MlflowSettings", "ResourceSettings", "RoomSettings", "Runtime", "RunSettings",
     "SampleEfficiencySettings", "ScalingSettings", "SelectionSettings", "SplitLabels", "TablesSettings",
-    "WmQualitySettings", "figures_settings", "resource_settings",
+    "WmQualitySettings", "ForesightSettings", "HeadroomSettings", "figures_settings", "resource_settings",
     "Untracked", "audit_slice", "calibrate_slice", "eda_slice", "evaluate_slice", "experiment_slice",
     "figures_slice", "mlflow_slice", "param", "prep_slice", "probe_slice", "read_param", "runtime", "select_slice",
     "tables_slice", "tracking", "train_slice", "variant_evaluate_slice", "variant_retrains", "variant_train_slice",
-    "VARIANT_KINDS", "Variant", "extra_jobs", "extra_variants", "parse_variant", "probe_jobs", "probed_methods",
-    "scale_intensity", "variant_methods", "variant_settings",
+    "ALGORITHM_1", "HEADROOM_METHODS", "PLANNERS", "SOURCE_METHODS", "SOURCES", "VARIANT_KINDS", "Variant",
+    "extra_jobs", "extra_variants", "figure_seeds", "figure_variants", "foresight_cells", "foresight_jobs",
+    "headroom_jobs", "headroom_variant", "parse_variant", "probe_jobs", "probed_methods", "scale_intensity",
+    "variant_days", "variant_methods", "variant_settings",
 ]

@@ -212,6 +212,36 @@ class WmQualitySettings:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class ForesightSettings:
+    """config.yaml ``figures.foresight``: demand source x planner (figure ``foresight``)."""
+
+    datasets: tuple[str, ...]
+    """Datasets of the grid (those the profile runs are drawn)."""
+    rho: tuple[float, ...]
+    """Anchoring values rho of the world-model rows besides each planner's own (``dswm.planner.rho``)."""
+    eval_days: EvalDayLimits
+    """How many of each split's test days the grid's extra runs evaluate (the methods' own cells are the main
+    evaluations cut to the same days)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class HeadroomSettings:
+    """config.yaml ``figures.headroom``: Greedy, Perfect forecast and Ceiling over D_max x demand intensity
+    (figure ``headroom``)."""
+
+    datasets: tuple[str, ...]
+    """Datasets of the map (those the profile runs are drawn)."""
+    d_max_m: tuple[float, ...]
+    """Largest displacement per slot of each column of the map, metres (the scenario's own is one of them)."""
+    intensity_scales: tuple[float, ...]
+    """Factors of the calibrated demand intensity u of each row of the map."""
+    min_room: float
+    """A regime whose room (Perfect - Greedy) reaches this is named in the CSV."""
+    eval_days: EvalDayLimits
+    """How many of each split's test days the map's extra runs evaluate."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class FiguresSettings:
     """config.yaml ``figures`` merged with ``figures.budgets.<profile>``: the figures' dataset and the sizes of the
     extra runs behind them (none of which enters a table)."""
@@ -230,6 +260,10 @@ class FiguresSettings:
     """The test-day probe at fixed training checkpoints."""
     wm_quality: WmQualitySettings
     """The world model's imagination-quality curve."""
+    foresight: ForesightSettings
+    """Demand source x planner on every dataset."""
+    headroom: HeadroomSettings
+    """The headroom map: D_max x demand intensity on some datasets."""
 
     def present(self, names, settings: "Settings") -> list[str]:
         """The methods of ``names`` that ``methods.run`` evaluates on :attr:`dataset`, in the order given."""

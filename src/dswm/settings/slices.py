@@ -11,7 +11,7 @@ from typing import Any
 
 from dswm.config import ConfigError, canonical_json, to_plain
 from dswm.settings.model import Settings
-from dswm.settings.variants import Variant, probe_jobs, variant_settings
+from dswm.settings.variants import Variant, probe_jobs, variant_days, variant_settings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,8 +134,9 @@ def select_slice(settings: Settings) -> dict:
 
 
 def _with_intensity_scale(job: dict, variant: Variant) -> dict:
-    """``job`` with ``intensity_scale``, the factor of u applied after calibration, for a u variant."""
-    return {**job, "intensity_scale": float(variant.value)} if variant.kind == "u" else job
+    """``job`` with ``intensity_scale``, the factor of u applied after calibration, for a variant with a u change."""
+    factor = variant.get("u")
+    return {**job, "intensity_scale": float(factor)} if factor is not None else job
 
 
 def variant_train_slice(settings: Settings, method: str, variant: Variant) -> dict:
@@ -147,9 +148,10 @@ def variant_train_slice(settings: Settings, method: str, variant: Variant) -> di
 
 def variant_evaluate_slice(settings: Settings, method: str, variant: Variant) -> dict:
     """What an ``extra_evaluate`` job reads: :func:`evaluate_slice` of the variant's settings with the day limits
-    of ``figures.eval_days``, and ``intensity_scale`` for a u variant."""
+    of its figure (:func:`variant_days`: ``figures.eval_days``, or the foresight grid's or the headroom map's),
+    and ``intensity_scale`` for a u change."""
     job = evaluate_slice(variant_settings(settings, variant, method), method)
-    job["eval_days"] = to_plain(settings.figures.eval_days)
+    job["eval_days"] = to_plain(variant_days(settings, variant))
     return _with_intensity_scale(job, variant)
 
 
