@@ -44,7 +44,7 @@ def test_a_file_in_the_way_of_the_jobs_about_to_run_is_named_before_any_job(tree
     proc = snakemake(tree, "tables", "--cores", "1", timeout=300)
     assert proc.returncode != 0
     assert ("results/milan is a file, not a directory: the outputs of evaluate, train cannot be written in "
-            "results/milan/dswm/seed0, results/milan/dswm_plus/seed0, results/milan/dswm_plus_persist/seed0 and 15 "
+            "results/milan/ceiling/seed0, results/milan/dswm/seed0, results/milan/dswm_plus/seed0 and 16 "
             "more; nothing was run (move the file away and run again)") in proc.stdout + proc.stderr
     assert nothing_ran(tree, "milan")
 
