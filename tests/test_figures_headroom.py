@@ -1,4 +1,4 @@
-"""Issue 33's figures: the foresight grid (demand source x planner) and the headroom map (D_max x u): which extra
+"""The figures of where foresight pays: the foresight grid (demand source x planner) and the headroom map (D_max x u): which extra
 runs they need, the settings each run changes, and the numbers of their tables."""
 import polars as pl
 import pytest

@@ -446,14 +446,14 @@ def test_every_figure_is_written_with_its_data_caption_and_profile(run):
 
 
 def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_evaluations_on_the_same_days(run):
-    """Issue 33: every cell of the foresight grid is a main evaluation or an extra run (rho0, alg1) on every dataset;
+    """Every cell of the foresight grid is a main evaluation or an extra run (rho0, alg1) on every dataset;
     the headroom map's own cell is the main evaluations' first ID day, the ceiling's value stands in every D_max
     column, and the CSV names exactly the cells whose room reaches min_room."""
     fig = run / "results" / "figures"
     for name in ("foresight", "headroom"):
         assert (fig / f"{name}.png").read_bytes()[:4] == b"\x89PNG", name
         first = (fig / f"{name}.csv").read_text().splitlines()[0]
-        assert first.startswith(f"# Issue 33 ({name})") and first.endswith("(profile: smoke)"), first
+        assert first.startswith(f"# {name.capitalize()} (no paper figure): ") and first.endswith("(profile: smoke)"), first
     grid = pl.read_csv(fig / "foresight.csv", comment_prefix="#").filter(pl.col("panel") == "a")
     for ds in ("milan", "shanghai", "yjmob"):
         part = grid.filter((pl.col("dataset") == ds) & (pl.col("planner") != "reference"))

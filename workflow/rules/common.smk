@@ -253,7 +253,7 @@ def main_days(methods, seeds):
     return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
 
 
-# Issue 33's figures (headroom.smk): their runs are extra_evaluate's, on datasets of their own.
+# The foresight and headroom figures (headroom.smk): their runs are extra_evaluate's, on datasets of their own.
 def extra_files_of(jobs):
     """The days.parquet of the extra runs ``jobs``: (dataset, variant, method, seed) tuples
     (dswm.settings.foresight_jobs, headroom_jobs)."""

@@ -1,4 +1,4 @@
-# Issue 33's two figures. `foresight`: demand source x planner on every dataset of `figures.foresight` (Algorithm 1's
+# The two figures of where foresight pays. `foresight`: demand source x planner on every dataset of `figures.foresight` (Algorithm 1's
 # planner and DSWM+'s, each on persistence, the world model anchored by rho and the true maps), beside the world
 # model's demand RMSE against persistence's (the wm_quality replay of each dataset). `headroom`: Greedy, Perfect
 # forecast and Ceiling over D_max x u on the datasets of `figures.headroom`. A cell that is a method's main

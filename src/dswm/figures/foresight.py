@@ -1,4 +1,4 @@
-"""Figure ``foresight`` (issue 33, no paper figure): demand source x planner. (a) per dataset, the served ratio of
+"""Figure ``foresight`` (no paper figure): demand source x planner. (a) per dataset, the served ratio of
 Algorithm 1's planner (``dswm``'s) and of DSWM+'s, each on persistence, on the world model anchored by the
 planner's own rho and by ``figures.foresight.rho``, and on the true future maps, with Greedy and Perfect forecast
 as lines; (b) the world model's demand RMSE against persistence's per imagination step (the ``wm_quality``
@@ -17,7 +17,7 @@ from dswm.figures.wm_quality import rmse_table
 from dswm.settings import EvalDayLimits
 
 PLANNER_LABELS = {"alg1": "Algorithm 1 (dswm's planner)", "plus": "DSWM+'s planner"}
-CAPTION = ("Issue 33 (foresight): (a) served ratio per demand source x planner (persistence; world model anchored "
+CAPTION = ("Foresight (no paper figure): (a) served ratio per demand source x planner (persistence; world model anchored "
            "by rho; true future maps), mean over seeds of each seed's mean day, with Greedy (dashed) and Perfect "
            "forecast (dotted); 'not run': a method the profile does not evaluate there; (b) the world model's "
            "demand RMSE (rho 0: the ensemble mean; anchored: rho 0.95) against persistence's per imagination step, "

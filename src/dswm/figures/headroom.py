@@ -1,4 +1,4 @@
-"""Figure ``headroom`` (issue 33, no paper figure): where foresight could pay. On each dataset of
+"""Figure ``headroom`` (no paper figure): where foresight could pay. On each dataset of
 ``figures.headroom``, Greedy, Perfect forecast and the per-slot Ceiling over D_max x demand intensity (u x factor):
 (a) Perfect - Greedy, the room a forecast could fill, and (b) Ceiling - Perfect, what the motion limit costs, per
 cell. The scenario's own cell (its D_max, u x 1) is the main evaluations cut to the map's days; the others are
@@ -15,7 +15,7 @@ from dswm.figures.common import plt, save_figure
 from dswm.figures.variants import check_same_days, first_days
 from dswm.settings import EvalDayLimits
 
-CAPTION = ("Issue 33 (headroom): per D_max (largest move per slot) and demand intensity (u x factor), (a) Perfect "
+CAPTION = ("Headroom (no paper figure): per D_max (largest move per slot) and demand intensity (u x factor), (a) Perfect "
            "forecast - Greedy, the room a forecast could fill, and (b) Ceiling - Perfect, what the motion limit "
            "costs; served ratio, mean over seeds of each seed's mean day; outlined: room >= {min_room:g}.")
 
