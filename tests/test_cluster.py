@@ -183,7 +183,7 @@ def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines, 
     runs = client.search_runs([exp.experiment_id], filter_string=f"tags.workdir = '{workdir}'", max_results=1000)
     keys = sorted(r.data.tags["job_key"] for r in runs)
     stats = job_stats(slurm_run["text"])
-    assert len(keys) == sum(stats[rule] for rule in TRACKED) == 27
+    assert len(keys) == sum(stats[rule] for rule in TRACKED) == 28
     assert len(set(keys)) == len(keys)  # one run per job
     assert {r.info.status for r in runs} == {"FINISHED"}
     evaluations = [r for r in runs if r.data.tags["stage"] == "evaluate"]
@@ -359,7 +359,7 @@ def test_no_secret_shows_in_a_log_a_ps_listing_a_param_or_a_tag(slurm_run, engin
     assert watch.leaks == []
     # every log of the run: the rules' logs, SLURM's log of every job (all kept), Snakemake's own, and its output
     logs = [p for d in ("logs", ".snakemake/log") for p in (work / d).rglob("*") if p.is_file()]
-    assert len(list((work / "logs" / "slurm").glob("rule_*/**/*.log"))) == 33  # SLURM's log of every job, kept
+    assert len(list((work / "logs" / "slurm").glob("rule_*/**/*.log"))) == 34  # SLURM's log of every job, kept
     logs += [slurm_run["log"], *(engines.root / "log").rglob("*")]
     leaked = [str(p) for p in logs if p.is_file() and any(s.encode() in p.read_bytes() for s in secrets)]
     assert leaked == []
@@ -368,6 +368,6 @@ def test_no_secret_shows_in_a_log_a_ps_listing_a_param_or_a_tag(slurm_run, engin
     exps = [client.get_experiment_by_name(n) for n in ("dswm", "dswm-figures")]
     runs = client.search_runs([e.experiment_id for e in exps if e is not None], max_results=1000,
                               filter_string=f"tags.workdir = '{work.resolve()}'")
-    assert len(runs) == 27
+    assert len(runs) == 28
     texts = [f"{k}={v}" for r in runs for k, v in (*r.data.params.items(), *r.data.tags.items())]
-    assert len(texts) > 27 * 10 and [t for t in texts if any(s in t for s in secrets)] == []
+    assert len(texts) > 28 * 10 and [t for t in texts if any(s in t for s in secrets)] == []
