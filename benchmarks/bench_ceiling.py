@@ -4,9 +4,8 @@ Run: python benchmarks/bench_ceiling.py [--results results] [--datasets milan sh
 Writes benchmarks/results/ceiling_doubling.json (``--name``). The datasets can run as separate processes, each with
 its own ``--name``, and ``--merge NAME...`` then writes their reports, of the same settings, as one.
 The committed ceiling_doubling.json was run on the DEMO tensors (``--results`` a demo run's results directory: its
-``data/<dataset>`` and ``calibration/demand_intensity.json``; read only), 2 training days of Shanghai and of
-YJMob100K; Milan's doubled run (about 8 times the base cost) is not in it (config.yaml ``ceiling`` says what is known
-of Milan). Each dataset's entry records its tensor's source and SHA-256.
+``data/<dataset>`` and ``calibration/demand_intensity.json``; read only), 2 training days of each dataset, one
+process per dataset merged with ``--merge``. Each dataset's entry records its tensor's source and SHA-256.
 
 For each dataset, the ceiling (``dswm.methods.ceiling``) runs at the settings config.yaml ``ceiling`` gives and at
 those settings doubled (``CeilingSettings.doubled``: twice the sweeps, refinement rounds and starts, twice the
