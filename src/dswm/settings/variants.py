@@ -33,6 +33,12 @@ class Variant:
     more: tuple[tuple[str, float], ...] = ()
     """Further (kind, value) changes of the same run (the headroom map's ``D250u0.5``: D_max and u)."""
 
+    @classmethod
+    def of(cls, changes) -> "Variant | None":
+        """The variant of the (kind, value) ``changes``, the first one first; None when there is none."""
+        changes = list(changes)
+        return cls(changes[0][0], changes[0][1], tuple(changes[1:])) if changes else None
+
     @property
     def changes(self) -> tuple[tuple[str, float], ...]:
         """Every (kind, value) change, the first one first."""
@@ -72,7 +78,7 @@ def parse_variant(name: str) -> Variant:
     changes = [_change(k, v, name) for k, v in re.findall(_TOKEN, name)]
     if len({k for k, _ in changes}) < len(changes):
         raise ValueError(f"extra-run variant {name!r}: a kind of change appears twice (expected each at most once)")
-    return Variant(changes[0][0], changes[0][1], tuple(changes[1:]))
+    return Variant.of(changes)
 
 
 def extra_variants(settings: Settings) -> list[Variant]:
@@ -141,7 +147,7 @@ def foresight_cells(settings: Settings, dataset: str) -> list[dict]:
             rhos = [own_rho] + [float(r) for r in settings.figures.foresight.rho if r != own_rho]
             for rho in (rhos if source == "model" else [None]):
                 changes = alg + ([("rho", float(rho))] if source == "model" and rho != own_rho else [])
-                variant = Variant(changes[0][0], changes[0][1], tuple(changes[1:])) if changes else None
+                variant = Variant.of(changes)
                 cells.append({"planner": planner, "source": source, "rho": rho,
                               "method": method if ok else None, "variant": variant if ok else None})
     return cells
