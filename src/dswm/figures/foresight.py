@@ -11,7 +11,7 @@ from typing import Mapping, Sequence
 
 import polars as pl
 
-from dswm.figures.common import plt, save_figure
+from dswm.figures.common import mean_std, plt, save_figure
 from dswm.figures.variants import check_same_days, first_days
 from dswm.figures.wm_quality import rmse_table
 from dswm.settings import EvalDayLimits
@@ -46,9 +46,9 @@ def _mean(rows: pl.DataFrame) -> tuple[float | None, float | None, int, int]:
     """(mean over seeds of each seed's mean sr_mean, std over seeds (0 for one), seeds, days per seed)."""
     if not rows.height:
         return None, None, 0, 0
-    per_seed = rows.group_by("seed").agg(pl.col("sr_mean").mean(), pl.len().alias("n"))
-    std = per_seed["sr_mean"].std(ddof=1) if per_seed.height > 1 else 0.0
-    return float(per_seed["sr_mean"].mean()), float(std), per_seed.height, int(per_seed["n"].max())
+    stats = mean_std(rows, [], "sr_mean").row(0, named=True)
+    days = int(rows.group_by("seed").len()["len"].max())
+    return float(stats["sr_mean"]), float(stats["sr_mean_std"]), stats["seeds"], days
 
 
 def foresight_table(main: pl.DataFrame, runs: pl.DataFrame | None, cells: Mapping[str, Sequence[Mapping]], *,
