@@ -147,7 +147,7 @@ class PlanningController(Controller):
         cfg = self.settings.planner
         world = ImaginedWorld(cells=self.cells, geom=self.geom, scenario=self.scenario, params=self.params)
         scoring = StepScoring(rho=cfg.rho, lambda_u=cfg.lambda_u, continuation=cfg.continuation,
-                              scale=cfg.imagine_scale)
+                              scale=cfg.imagine_scale, rho_steps=cfg.rho_steps)
         return ImaginationScorer(model=model, latent=latent, fleet=fleet, x_now=demand[-1].reshape(-1), world=world,
                                  scoring=scoring, gamma=cfg.gamma, compile=cfg.compile, demand_override=maps)
 
@@ -305,7 +305,7 @@ class DSWMController(PlanningController):
         if self.proposal is not None:
             mean0 = self.planner.warm_mean()[0]
             prior = self.model.rssm.img_step(self.latent, mean0.reshape(1, -1), sample=False)
-            x_next, _ = anchor(x_now, self.model.demand_members(self.model.rssm.feat(prior)), cfg.rho)
+            x_next, _ = anchor(x_now, self.model.demand_members(self.model.rssm.feat(prior)), cfg.rho_at(1))
             first_map = x_next[0]
         return scorer, first_map
 

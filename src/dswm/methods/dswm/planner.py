@@ -34,7 +34,7 @@ from typing import Callable, Literal, NamedTuple
 
 import torch
 
-from dswm.config import ENUM, GIVEN, check_fields, setting
+from dswm.config import ENUM, GIVEN, ConfigError, check_fields, setting
 from dswm.sim.scenario import Scenario
 from dswm.methods.collect import lloyd_step
 from dswm.methods.search import SearchSettings
@@ -69,6 +69,13 @@ class PlannerConfig:
     """Planner discount."""
     rho: float = setting("fraction")
     """Anchor mixing coefficient (eq. 18)."""
+    rho_steps: tuple[float, ...] | None = setting(schema={
+        "anyOf": [{"type": "array", "minItems": 1, "items": {"type": "number", "minimum": 0, "maximum": 1}},
+                  {"type": "null"}],
+        "description": "a list of H numbers in [0, 1] (rho_k of imagined step k = 1..H), or null (rho at every step)"},
+        default=None)
+    """Anchoring per imagined step: rho_k of step k = 1..H in place of ``rho``; None: ``rho`` at every step (the
+    methods of config.yaml; the room-fill candidate takes rho_k fitted on training days, ``dswm.pipeline.room_fill``)."""
     lambda_u: float = setting("nonnegative")
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
     warm_start: bool = setting("flag")
@@ -90,6 +97,15 @@ class PlannerConfig:
 
     def __post_init__(self):
         check_fields(self, "dswm.planner")
+        if self.rho_steps is not None:
+            object.__setattr__(self, "rho_steps", tuple(float(r) for r in self.rho_steps))
+            if len(self.rho_steps) != self.horizon:
+                raise ConfigError(f"config key dswm.planner.rho_steps: expected {self.horizon} numbers (one per "
+                                  f"imagined step, horizon {self.horizon}), found {len(self.rho_steps)}")
+
+    def rho_at(self, step: int) -> float:
+        """The anchoring of imagined step ``step`` (1..H): ``rho_steps[step - 1]``, or ``rho`` without them."""
+        return self.rho if self.rho_steps is None else self.rho_steps[step - 1]
 
     @property
     def later_std(self) -> float:
@@ -197,6 +213,14 @@ class StepScoring:
     scale: float = 1.0
     """s of the do(s) probe, the factor of the imagined demand (the anchored map, or the given map); the
     uncertainty u, relative to the scored demand, does not change with it."""
+    rho_steps: tuple[float, ...] | None = None
+    """rho_k of imagined step k = 1..H in place of ``rho`` (``planner.rho_steps``); None: ``rho`` at every step."""
+
+    def at(self, tau: int) -> "StepScoring":
+        """The scoring of imagined step ``tau + 1``: this one, with rho = rho_{tau+1} when ``rho_steps`` is given."""
+        if self.rho_steps is None:
+            return self
+        return dataclasses.replace(self, rho=float(self.rho_steps[tau]), rho_steps=None)
 
 
 def imagined_step(model, fleet: FleetState, state: LatentState | None, act: torch.Tensor,
@@ -296,7 +320,7 @@ class ImaginationScorer:
             fleet, state, act, x_prev, assoc, reward = self.step(
                 self.model, fleet, state, actions[:, tau], x_prev, assoc, x_now=self.x_now,
                 x_true=None if self.override is None else self.override[tau], world=self.world,
-                scoring=self.scoring, first=tau == 0)
+                scoring=self.scoring.at(tau), first=tau == 0)
             taken.append(act)
             score += self.gamma ** (tau + 1) * reward
         self.last_actions = torch.stack(taken, 1)
