@@ -26,6 +26,7 @@ include: "workflow/rules/extra.smk"
 include: "workflow/rules/probes.smk"
 include: "workflow/rules/wm.smk"
 include: "workflow/rules/headroom.smk"
+include: "workflow/rules/room_fill.smk"
 include: "workflow/rules/learning.smk"
 include: "workflow/rules/figures.smk"
 

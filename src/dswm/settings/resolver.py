@@ -13,6 +13,7 @@ from dswm.settings.model import MethodSettings, Settings
 from dswm.settings.schema import SCHEMA, coerce_cli_strings, load_schema, validate_config
 from dswm.settings.sections import (CalibrationSettings, Display, EvaluationSettings, MlflowSettings, RunSettings,
                                     SelectionSettings, TablesSettings, figures_settings, resource_settings)
+from dswm.settings.variants import check_room_fill
 from dswm.sim.scenario import Scenario
 from prep.config import DATASETS, DatasetsConfig
 
@@ -111,6 +112,7 @@ def _resolve(config: Mapping[str, Any], *, root: str | Path | None, schema: Mapp
                           f"profile {profile!r} does not run (profiles.{profile}.datasets: "
                           f"{', '.join(settings.run.datasets)})")
     check_figures(settings)
+    check_room_fill(settings)
     if root is not None:
         check_raw_files(settings, root)
     return settings

@@ -242,6 +242,27 @@ class HeadroomSettings:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class RoomFillSettings:
+    """config.yaml ``figures.room_fill``: DSWM+, its persistence probe, Algorithm 1 and the candidate with anchoring
+    per imagined step in one regime of the headroom map (figure ``room_fill``)."""
+
+    dataset: str
+    """The regime's dataset (one of ``figures.headroom.datasets``)."""
+    d_max_m: float
+    """The regime's largest displacement per slot, metres (one of ``figures.headroom.d_max_m``)."""
+    intensity_scale: float
+    """The regime's factor of the calibrated demand intensity u (one of ``figures.headroom.intensity_scales``)."""
+    eval_days: EvalDayLimits
+    """How many of each split's test days every run of the figure evaluates (Greedy and Perfect included)."""
+    fit_days: int
+    """Training days whose replay fits rho_k: the ``fit_days`` training days before the validation days."""
+    validation_days: int
+    """The last training days, held out as ``select`` holds them out: gamma is chosen on them."""
+    gammas: tuple[float, ...]
+    """Candidate planner discounts of the candidate (ties: the first)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class FiguresSettings:
     """config.yaml ``figures`` merged with ``figures.budgets.<profile>``: the figures' dataset and the sizes of the
     extra runs behind them (none of which enters a table)."""
@@ -264,6 +285,8 @@ class FiguresSettings:
     """Demand source x planner on every dataset."""
     headroom: HeadroomSettings
     """The headroom map: D_max x demand intensity on some datasets."""
+    room_fill: RoomFillSettings
+    """DSWM+ where the room is: the share of the room each planner fills in one regime of the headroom map."""
 
     def present(self, names, settings: "Settings") -> list[str]:
         """The methods of ``names`` that ``methods.run`` evaluates on :attr:`dataset`, in the order given."""

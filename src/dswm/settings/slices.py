@@ -11,7 +11,8 @@ from typing import Any
 
 from dswm.config import ConfigError, canonical_json, to_plain
 from dswm.settings.model import Settings
-from dswm.settings.variants import Variant, probe_jobs, variant_days, variant_settings
+from dswm.settings.variants import (ROOM_FILL_ARMS, ROOM_FILL_CANDIDATE, Variant, probe_jobs, room_fill_variant,
+                                    variant_days, variant_settings)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +154,18 @@ def variant_evaluate_slice(settings: Settings, method: str, variant: Variant) ->
     job = evaluate_slice(variant_settings(settings, variant, method), method)
     job["eval_days"] = to_plain(variant_days(settings, variant))
     return _with_intensity_scale(job, variant)
+
+
+def room_fill_slice(settings: Settings, arm: str) -> dict:
+    """What a ``room_fill_evaluate`` job of ``arm`` (``dswm.settings.ROOM_FILL_ARMS``) reads: its method's evaluate
+    slice under the regime's variant (the main one at the scenario's own cell), on ``figures.room_fill.eval_days``;
+    the candidate's slice also holds ``room_fill`` (its fit job's settings; the rho_k and gamma come from that job)."""
+    method, variant, rf = ROOM_FILL_ARMS[arm], room_fill_variant(settings), settings.figures.room_fill
+    job = evaluate_slice(settings, method) if variant is None else variant_evaluate_slice(settings, method, variant)
+    job["eval_days"] = to_plain(rf.eval_days)
+    if arm == ROOM_FILL_CANDIDATE:
+        job["room_fill"] = to_plain(rf)
+    return job
 
 
 def variant_retrains(settings: Settings, method: str, variant: Variant) -> bool:

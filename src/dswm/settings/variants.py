@@ -187,6 +187,53 @@ def headroom_jobs(settings: Settings) -> list[tuple[str, str, str, int]]:
     return out
 
 
+ROOM_FILL_ARMS = {"greedy": "greedy", "perfect": "perfect", "dswm": ALGORITHM_1, "dswm_plus": "dswm_plus",
+                  "dswm_plus_persist": "dswm_plus_persist", "dswm_plus_rhok": "dswm_plus"}
+"""{arm: the method it evaluates} of figure ``room_fill``: Greedy and Perfect (the room), Algorithm 1, DSWM+, its
+persistence probe, and the candidate (:data:`ROOM_FILL_CANDIDATE`): DSWM+ with rho_k and gamma fitted on training days."""
+ROOM_FILL_CANDIDATE = "dswm_plus_rhok"
+"""The arm whose planner takes the rho_k and gamma of the room_fill_fit job."""
+
+
+def room_fill_variant(settings: Settings) -> Variant | None:
+    """The headroom map's variant of the regime of ``figures.room_fill`` (None: the scenario's own cell)."""
+    rf = settings.figures.room_fill
+    return headroom_variant(settings, rf.d_max_m, rf.intensity_scale)
+
+
+def room_fill_arms(settings: Settings) -> dict[str, str]:
+    """{arm: method} of :data:`ROOM_FILL_ARMS` whose method ``methods.run`` evaluates on ``figures.room_fill.dataset``
+    (none when the profile does not run that dataset, or runs no DSWM+: the figure is then not drawn)."""
+    rf = settings.figures.room_fill
+    if rf.dataset not in settings.run.datasets:
+        return {}
+    on = settings.methods_on(rf.dataset)
+    if "dswm_plus" not in on:
+        return {}
+    return {a: m for a, m in ROOM_FILL_ARMS.items() if m in on}
+
+
+def room_fill_jobs(settings: Settings) -> list[tuple[str, str, int]]:
+    """Every (dataset, arm, seed) evaluation of figure ``room_fill``, seeds :func:`figure_seeds`."""
+    d = settings.figures.room_fill.dataset
+    return [(d, a, s) for a in room_fill_arms(settings) for s in figure_seeds(settings, d)]
+
+
+def check_room_fill(settings: Settings) -> None:
+    """The regime of ``figures.room_fill`` is a cell of the headroom map (its dataset, D_max and u factor).
+
+    Raises:
+        ConfigError: naming the key and the map's values.
+    """
+    rf, hr = settings.figures.room_fill, settings.figures.headroom
+    for key, value, allowed in (("dataset", rf.dataset, hr.datasets), ("d_max_m", rf.d_max_m, hr.d_max_m),
+                                ("intensity_scale", rf.intensity_scale, hr.intensity_scales)):
+        if value not in allowed:
+            raise ConfigError(f"config.yaml: key 'figures.room_fill.{key}' is {value!r}, which is no cell of the "
+                              f"headroom map (figures.headroom.{'datasets' if key == 'dataset' else key}: "
+                              f"{list(allowed)}); the regime is one the map measured")
+
+
 def figure_variants(settings: Settings) -> list[Variant]:
     """Every variant of the extra runs: :func:`extra_variants`, then the foresight grid's and the headroom map's."""
     names = [v.name for v in extra_variants(settings)]

@@ -138,3 +138,48 @@ def day_quality(model, play, *, grid, scenario, horizon: int, rho: float, lambda
     sr_hat, reward = imagined_rewards(model, posts, play, grid=grid, scenario=scenario, rho=rho, lambda_u=lambda_u)
     return {"starts": starts, **errors, "sr_hat": sr_hat, "reward": reward, "sr": play.sr[1:],
             "one_step": one_step.reshape(play.demand.shape)}
+
+
+# ---- anchoring per imagined step (the room-fill candidate, dswm.pipeline.room_fill) ----------------------------
+def anchor_moments(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray) -> dict[str, np.ndarray]:
+    """The sums over starts and cells that the least-squares anchoring of each imagined step needs.
+
+    With x = x_t, m = the model's map of step k and y = x_{t+k}, the anchored map rho x + (1 - rho) m has squared
+    error sum (m - y + rho (x - m))^2 = ``mm`` + 2 rho ``xm_my`` + rho^2 ``xm``. Sums add over days.
+
+    Args:
+        pred: (H, N, G) imagined maps (:func:`open_loop_maps`); demand: (T, G) realized maps; starts: (N,) start slots.
+    Returns:
+        {"xm": sum (x - m)^2, "xm_my": sum (x - m)(m - y), "mm": sum (m - y)^2, "n": number of terms}, (H,) each.
+    """
+    horizon = pred.shape[0]
+    starts = np.asarray(starts, dtype=np.int64)
+    now = demand[starts].astype(np.float64)[None]                                           # (1, N, G)
+    truth = np.stack([demand[starts + k] for k in range(1, horizon + 1)]).astype(np.float64)  # (H, N, G)
+    model = pred.astype(np.float64)
+    d, e = now - model, model - truth
+    n = np.full(horizon, float(d.shape[1] * d.shape[2]))
+    return {"xm": (d * d).sum(axis=(1, 2)), "xm_my": (d * e).sum(axis=(1, 2)), "mm": (e * e).sum(axis=(1, 2)), "n": n}
+
+
+def add_moments(a: dict[str, np.ndarray] | None, b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The moments of two sets of days together (``a`` None: ``b``)."""
+    return dict(b) if a is None else {k: a[k] + b[k] for k in b}
+
+
+def fit_rho_steps(moments: dict[str, np.ndarray]) -> np.ndarray:
+    """rho_k minimizing the squared error of rho_k x_t + (1 - rho_k) m_k against x_{t+k}, per step k, clipped to
+    [0, 1]: rho_k = -``xm_my`` / ``xm`` (the least-squares solution); 1 (persistence) where x_t = m_k everywhere.
+
+    Returns:
+        (H,) rho_1..rho_H.
+    """
+    xm, xm_my = np.asarray(moments["xm"], dtype=np.float64), np.asarray(moments["xm_my"], dtype=np.float64)
+    rho = np.divide(-xm_my, xm, out=np.ones_like(xm), where=xm > 0)
+    return np.clip(rho, 0.0, 1.0)
+
+
+def anchored_mse(moments: dict[str, np.ndarray], rho) -> np.ndarray:
+    """(H,) mean squared error per step of the map anchored by ``rho`` (a number, or one per step)."""
+    rho = np.broadcast_to(np.asarray(rho, dtype=np.float64), moments["xm"].shape)
+    return (moments["mm"] + 2.0 * rho * moments["xm_my"] + rho * rho * moments["xm"]) / moments["n"]

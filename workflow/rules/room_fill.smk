@@ -1,0 +1,118 @@
+# Figure room_fill: DSWM+ where the room is. In the regime of `figures.room_fill` (a cell of the headroom map: its
+# dataset, D_max and u factor), Greedy and Perfect forecast (the room), Algorithm 1, DSWM+, its persistence probe
+# and the candidate (DSWM+ with anchoring per imagined step rho_k and a gamma, both chosen on TRAINING days by
+# room_fill_fit) on every test day of `figures.room_fill.eval_days`, with the world model trained in the regime
+# (extra.smk's extra_train when the regime changes u). Outputs under results/extra/<dataset>/room_fill/: never a
+# table's source.
+CONDITIONAL_RULES.update({"room_fill_fit", "room_fill_evaluate", "figure_room_fill"})
+"""Defined only where the profile runs the regime's dataset with DSWM+; `resources.rules` may name them."""
+_RF = FIGURES_SETTINGS.room_fill
+_RF_ARMS = S.room_fill_arms(SETTINGS)
+_RF_VARIANT = S.room_fill_variant(SETTINGS)
+_RF_NAME = "own" if _RF_VARIANT is None else _RF_VARIANT.name
+_RF_TAG = f"fill{_RF_NAME}"
+"""The runs' ``variant`` tag and column: their MLflow job keys stay apart from the headroom map's runs."""
+RF_DIR = "results/extra/{dataset}/room_fill/{arm}/seed{seed}"
+
+
+def room_fill_model(wildcards, method=None):
+    """The world model of an arm (none for a method that does not learn): its training source's, trained in the
+    regime (extra_train) when the regime changes the train slice, else the main train rule's."""
+    method = method or _RF_ARMS[wildcards.arm]
+    if not learns(method):
+        return {}
+    source = SETTINGS.methods[method].training_source
+    keys = {"dataset": wildcards.dataset, "seed": wildcards.seed, "method": source}
+    if _RF_VARIANT is not None and S.variant_retrains(SETTINGS, method, _RF_VARIANT):
+        producer, keys = rules.extra_train, {**keys, "variant": _RF_VARIANT.name}
+    else:
+        producer = rules.train
+    return {"model": producer.output.model.format(**keys), "manifest": producer.output.manifest.format(**keys)}
+
+
+if _RF_ARMS:
+
+    rule room_fill_fit:
+        input:
+            unpack(lambda wc: room_fill_model(wc, "dswm_plus")),
+            tensor=rules.prepare.output.tensor,
+            meta=rules.prepare.output.meta,
+            mlflow=rules.mlflow_init.output.marker,
+            **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
+        output:
+            fit="results/extra/{dataset}/room_fill/fit/seed{seed}.json",
+        params:
+            settings=S.param(S.room_fill_slice(SETTINGS, S.ROOM_FILL_CANDIDATE)),
+            tracking=TRACKING,
+            display=S.Untracked(DISPLAY),
+            variant=_RF_TAG,
+        log:
+            "logs/room_fill_fit/{dataset}/seed{seed}.log",
+        benchmark:
+            "results/benchmarks/room_fill_fit/{dataset}/seed{seed}.tsv"
+        wildcard_constraints:
+            dataset=_RF.dataset,
+        threads: 1
+        resources:
+            **job_resources("room_fill_fit", method="dswm_plus"),
+        script:
+            "../scripts/room_fill_fit.py"
+
+    rule room_fill_evaluate:
+        input:
+            unpack(room_fill_model),
+            fit=lambda wc: ([rules.room_fill_fit.output.fit.format(dataset=wc.dataset, seed=wc.seed)]
+                            if wc.arm == S.ROOM_FILL_CANDIDATE else []),
+            tensor=rules.prepare.output.tensor,
+            meta=rules.prepare.output.meta,
+            mlflow=rules.mlflow_init.output.marker,
+            **INTENSITY,  # the calibrate rule's record when scenario.demand_intensity is `calibrate`
+        output:
+            days=RF_DIR + "/days.parquet",
+            trajectory=RF_DIR + "/trajectory.npz",
+            record=RF_DIR + "/eval_manifest.json",  # SHA-256 and size of the two files above, written last
+        params:
+            settings=lambda wc: S.param(S.room_fill_slice(SETTINGS, wc.arm)),
+            tracking=TRACKING,
+            display=S.Untracked(DISPLAY),
+            method=lambda wc: _RF_ARMS[wc.arm],
+            variant=lambda wc: _RF_TAG + ("rhok" if wc.arm == S.ROOM_FILL_CANDIDATE else ""),
+        log:
+            "logs/room_fill_evaluate/{dataset}/{arm}/seed{seed}.log",
+        benchmark:
+            "results/benchmarks/room_fill_evaluate/{dataset}/{arm}/seed{seed}.tsv"
+        wildcard_constraints:
+            dataset=_RF.dataset,
+            arm=_alternatives(_RF_ARMS),
+        threads: 1
+        resources:
+            **job_resources("room_fill_evaluate", method="dswm_plus"),  # every arm plans on DSWM+'s device
+        script:
+            "../scripts/room_fill_evaluate.py"
+
+    rule figure_room_fill:
+        input:
+            runs=[rules.room_fill_evaluate.output.days.format(dataset=d, arm=a, seed=s)
+                  for d, a, s in S.room_fill_jobs(SETTINGS)],
+            fits=[rules.room_fill_fit.output.fit.format(dataset=_RF.dataset, seed=s)
+                  for s in S.figure_seeds(SETTINGS, _RF.dataset)],
+            mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
+        output:
+            **figure_outputs("room_fill", "Where foresight pays"),
+        params:
+            attach=figure_attach(["extra"], [_RF.dataset], dict.fromkeys(_RF_ARMS.values())),
+            profile=PROFILE,
+            arms=list(_RF_ARMS),
+            labels={a: ("DSWM+ rho_k (candidate)" if a == S.ROOM_FILL_CANDIDATE
+                        else SETTINGS.methods[m].label) for a, m in _RF_ARMS.items()},
+            regime={"dataset": _RF.dataset, "d_max_m": float(_RF.d_max_m), "intensity_scale": float(_RF.intensity_scale)},
+            split_labels={"id": SETTINGS.tables.split_labels.id, "ood": SETTINGS.tables.split_labels.ood},
+        log:
+            "logs/figures/room_fill.log",
+        benchmark:
+            "results/benchmarks/figures/room_fill.tsv"
+        threads: 1
+        resources:
+            **job_resources("figure_room_fill"),
+        script:
+            "../scripts/figure_room_fill.py"
