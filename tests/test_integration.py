@@ -477,6 +477,33 @@ def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_eval
     assert table.filter(pl.col("named"))["regime"].null_count() == 0
 
 
+def test_room_fill_shares_the_room_of_greedy_and_perfect_on_the_same_days_and_fits_on_training_days_only(run):
+    """Figure room_fill: every arm on the regime's test day (smoke: Shanghai, D_max 1500 m, u x 2, one ID day), the
+    share (SR - Greedy) / (Perfect - Greedy) of each from the arms' own days.parquet; the candidate's rho_k (one per
+    imagined step, in [0, 1]) and gamma chosen on the last training days, never a test day."""
+    fig = run / "results" / "figures"
+    assert (fig / "room_fill.png").read_bytes()[:4] == b"\x89PNG"
+    first = (fig / "room_fill.csv").read_text().splitlines()[0]
+    assert first.startswith("# Room fill (no paper figure): ") and first.endswith("(profile: smoke)"), first
+    table = pl.read_csv(fig / "room_fill.csv", comment_prefix="#")
+    arms = ["greedy", "perfect", "dswm", "dswm_plus", "dswm_plus_persist", "dswm_plus_rhok"]
+    assert table.filter(pl.col("split") == "id")["arm"].to_list() == arms
+    assert sorted(set(table["split"])) == ["all", "id"] and set(table["dataset"]) == {"shanghai"}
+    base = run / "results" / "extra" / "shanghai" / "room_fill"
+    sr = {a: pl.read_parquet(base / a / "seed0" / "days.parquet")["sr_mean"].mean() for a in arms}
+    row = {r["arm"]: r for r in table.filter(pl.col("split") == "id").iter_rows(named=True)}
+    room = sr["perfect"] - sr["greedy"]
+    for a in arms:
+        assert row[a]["sr"] == pytest.approx(sr[a], abs=1e-12) and row[a]["room"] == pytest.approx(room, abs=1e-12)
+        assert row[a]["share"] == (pytest.approx((sr[a] - sr["greedy"]) / room, abs=1e-9) if room > 0 else None)
+    fit = json.loads((base / "fit" / "seed0.json").read_text())
+    meta = json.loads((run / "results" / "data" / "shanghai" / "meta.json").read_text())
+    train = [d["label"] for d in meta["days"] if d["split"] == "train"]
+    assert fit["validation_days"] == train[-1:] and fit["fit_days"] == train[-2:-1] and not fit["read_test_data"]
+    assert len(fit["rho_steps"]) == load_yaml(run / "config.yaml")["dswm"]["planner"]["horizon"]
+    assert all(0.0 <= r <= 1.0 for r in fit["rho_steps"]) and fit["gamma"] in (0.5, 0.9)
+
+
 def test_the_mlflow_experiment_opens_on_runs_and_each_evaluation_records_its_demand_tensor(run):
     from prep.rawio import sha256_file
 

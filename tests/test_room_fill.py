@@ -157,6 +157,6 @@ def test_room_fill_table_shares_per_split():
     assert row[("id", "greedy")]["share"] == 0.0 and row[("id", "perfect")]["share"] == pytest.approx(1.0)
     assert row[("ood", "dswm_plus")]["split_label"] == "Holiday" and row[("id", "dswm_plus")]["days"] == 2
     with pytest.raises(ValueError, match="arm 'dswm_plus' covers other"):
-        room_fill_table(runs.filter(~((pl.col("arm") == "dswm_plus") & (pl.col("day") == 5))), arms=["greedy", "perfect", "dswm_plus"],
-            labels={"greedy": "G", "perfect": "P", "dswm_plus": "D"},
-            regime={"dataset": "shanghai", "d_max_m": 1500.0, "intensity_scale": 2.0}, split_labels={})
+        room_fill_table(runs.filter(~((pl.col("arm") == "dswm_plus") & (pl.col("day") == 5))),
+                        arms=["greedy", "perfect", "dswm_plus"], labels={"greedy": "G", "perfect": "P", "dswm_plus": "D"},
+                        regime={"dataset": "shanghai", "d_max_m": 1500.0, "intensity_scale": 2.0}, split_labels={})

@@ -272,6 +272,22 @@ def plain_cells(cells):
     return [{**c, "variant": None if c["variant"] is None else c["variant"].name} for c in cells]
 
 
+# Figure room_fill (room_fill.smk): ROOM_FILL_ARMS_ON, ROOM_FILL_VARIANT and its rules are defined there.
+def room_fill_model(wildcards, method=None):
+    """The world model of an arm (none for a method that does not learn): its training source's, trained in the
+    regime (extra_train) when the regime changes the train slice, else the main train rule's."""
+    method = method or ROOM_FILL_ARMS_ON[wildcards.arm]
+    if not learns(method):
+        return {}
+    source = SETTINGS.methods[method].training_source
+    keys = {"dataset": wildcards.dataset, "seed": wildcards.seed, "method": source}
+    if ROOM_FILL_VARIANT is not None and S.variant_retrains(SETTINGS, method, ROOM_FILL_VARIANT):
+        producer, keys = rules.extra_train, {**keys, "variant": ROOM_FILL_VARIANT.name}
+    else:
+        producer = rules.train
+    return {"model": producer.output.model.format(**keys), "manifest": producer.output.manifest.format(**keys)}
+
+
 # The sample-efficiency probe (probes.smk): PROBE_JOBS and the probe rule are defined there.
 def probe_files():
     """The probe file of every probe job of the profile (audit.smk reads those that exist)."""

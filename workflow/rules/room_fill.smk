@@ -7,30 +7,17 @@
 CONDITIONAL_RULES.update({"room_fill_fit", "room_fill_evaluate", "figure_room_fill"})
 """Defined only where the profile runs the regime's dataset with DSWM+; `resources.rules` may name them."""
 _RF = FIGURES_SETTINGS.room_fill
-_RF_ARMS = S.room_fill_arms(SETTINGS)
-_RF_VARIANT = S.room_fill_variant(SETTINGS)
-_RF_NAME = "own" if _RF_VARIANT is None else _RF_VARIANT.name
+ROOM_FILL_ARMS_ON = S.room_fill_arms(SETTINGS)
+"""{arm: method} of figure room_fill that the profile evaluates (dswm.settings.room_fill_arms)."""
+ROOM_FILL_VARIANT = S.room_fill_variant(SETTINGS)
+"""The headroom map's variant of the regime (None: the scenario's own cell)."""
+_RF_NAME = "own" if ROOM_FILL_VARIANT is None else ROOM_FILL_VARIANT.name
 _RF_TAG = f"fill{_RF_NAME}"
 """The runs' ``variant`` tag and column: their MLflow job keys stay apart from the headroom map's runs."""
 RF_DIR = "results/extra/{dataset}/room_fill/{arm}/seed{seed}"
 
 
-def room_fill_model(wildcards, method=None):
-    """The world model of an arm (none for a method that does not learn): its training source's, trained in the
-    regime (extra_train) when the regime changes the train slice, else the main train rule's."""
-    method = method or _RF_ARMS[wildcards.arm]
-    if not learns(method):
-        return {}
-    source = SETTINGS.methods[method].training_source
-    keys = {"dataset": wildcards.dataset, "seed": wildcards.seed, "method": source}
-    if _RF_VARIANT is not None and S.variant_retrains(SETTINGS, method, _RF_VARIANT):
-        producer, keys = rules.extra_train, {**keys, "variant": _RF_VARIANT.name}
-    else:
-        producer = rules.train
-    return {"model": producer.output.model.format(**keys), "manifest": producer.output.manifest.format(**keys)}
-
-
-if _RF_ARMS:
+if ROOM_FILL_ARMS_ON:
 
     rule room_fill_fit:
         input:
@@ -75,7 +62,7 @@ if _RF_ARMS:
             settings=lambda wc: S.param(S.room_fill_slice(SETTINGS, wc.arm)),
             tracking=TRACKING,
             display=S.Untracked(DISPLAY),
-            method=lambda wc: _RF_ARMS[wc.arm],
+            method=lambda wc: ROOM_FILL_ARMS_ON[wc.arm],
             variant=lambda wc: _RF_TAG + ("rhok" if wc.arm == S.ROOM_FILL_CANDIDATE else ""),
         log:
             "logs/room_fill_evaluate/{dataset}/{arm}/seed{seed}.log",
@@ -83,7 +70,7 @@ if _RF_ARMS:
             "results/benchmarks/room_fill_evaluate/{dataset}/{arm}/seed{seed}.tsv"
         wildcard_constraints:
             dataset=_RF.dataset,
-            arm=_alternatives(_RF_ARMS),
+            arm=_alternatives(ROOM_FILL_ARMS_ON),
         threads: 1
         resources:
             **job_resources("room_fill_evaluate", method="dswm_plus"),  # every arm plans on DSWM+'s device
@@ -100,12 +87,13 @@ if _RF_ARMS:
         output:
             **figure_outputs("room_fill", "Where foresight pays"),
         params:
-            attach=figure_attach(["extra"], [_RF.dataset], dict.fromkeys(_RF_ARMS.values())),
+            attach=figure_attach(["extra"], [_RF.dataset], dict.fromkeys(ROOM_FILL_ARMS_ON.values())),
             profile=PROFILE,
-            arms=list(_RF_ARMS),
+            arms=list(ROOM_FILL_ARMS_ON),
             labels={a: ("DSWM+ rho_k (candidate)" if a == S.ROOM_FILL_CANDIDATE
-                        else SETTINGS.methods[m].label) for a, m in _RF_ARMS.items()},
-            regime={"dataset": _RF.dataset, "d_max_m": float(_RF.d_max_m), "intensity_scale": float(_RF.intensity_scale)},
+                        else SETTINGS.methods[m].label) for a, m in ROOM_FILL_ARMS_ON.items()},
+            regime={"dataset": _RF.dataset, "d_max_m": float(_RF.d_max_m),
+                    "intensity_scale": float(_RF.intensity_scale)},
             split_labels={"id": SETTINGS.tables.split_labels.id, "ood": SETTINGS.tables.split_labels.ood},
         log:
             "logs/figures/room_fill.log",

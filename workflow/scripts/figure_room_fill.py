@@ -1,4 +1,4 @@
-"""Figure room_fill: the share of the room each planner fills in one regime (results/figures/room_fill.{png,pdf,csv})."""
+"""Figure room_fill: the share of the room each planner fills in one regime (results/figures/room_fill.*)."""
 import json
 import sys
 from pathlib import Path

@@ -15,9 +15,9 @@ from dswm.figures.common import mean_std, plt, save_figure
 
 LOW, HIGH = "greedy", "perfect"
 """The arms that bound the room: planning on the current map, and on the true future maps."""
-CAPTION = ("DSWM+ where the room is ({regime}): share of the room (Perfect - Greedy) each planner fills, (SR - Greedy) / "
-           "(Perfect - Greedy) on the same days and seeds, per split; right: the candidate's rho_k, fitted on "
-           "training days.")
+CAPTION = ("Room fill (no paper figure): DSWM+ where the room is, {regime}: share of the room (Perfect - Greedy) "
+           "each planner fills, (SR - Greedy) / (Perfect - Greedy) on the same days and seeds, per split; right: the "
+           "candidate's rho_k, fitted on training days.")
 
 
 def room_fill_table(runs: pl.DataFrame, *, arms: Sequence[str], labels: Mapping[str, str],

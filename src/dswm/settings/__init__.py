@@ -47,10 +47,11 @@ from dswm.settings.slices import (Untracked, audit_slice, calibrate_slice, eda_s
                                   read_param, runtime, select_slice, tables_slice, tracking, train_slice,
                                   room_fill_slice, variant_evaluate_slice, variant_retrains, variant_train_slice)
 from dswm.settings.variants import (ALGORITHM_1, HEADROOM_METHODS, PLANNERS, ROOM_FILL_ARMS, ROOM_FILL_CANDIDATE,
-                                    SOURCE_METHODS, SOURCES, VARIANT_KINDS, Variant, check_room_fill, extra_jobs, extra_variants, figure_seeds, figure_variants,
-                                    foresight_cells, foresight_jobs, headroom_jobs, headroom_variant, parse_variant,
-                                    probe_jobs, probed_methods, room_fill_arms, room_fill_jobs, room_fill_variant,
-                                    scale_intensity, variant_days, variant_methods, variant_settings)
+                                    SOURCE_METHODS, SOURCES, VARIANT_KINDS, Variant, check_room_fill, extra_jobs,
+                                    extra_variants, figure_seeds, figure_variants, foresight_cells, foresight_jobs,
+                                    headroom_jobs, headroom_variant, parse_variant, probe_jobs, probed_methods,
+                                    room_fill_arms, room_fill_jobs, room_fill_variant, scale_intensity, variant_days,
+                                    variant_methods, variant_settings)
 
 __all__ = [
     "ConfigError", "build",
@@ -64,10 +65,12 @@ __all__ = [
     "CalibrationSettings", "Display", "DoProbeSettings", "EvalDayLimits", "EvaluationSettings", "FiguresSettings",
     "JobResources", "MlflowHttp", "MlflowSettings", "ResourceSettings", "RoomSettings", "Runtime", "RunSettings",
     "SampleEfficiencySettings", "ScalingSettings", "SelectionSettings", "SplitLabels", "TablesSettings",
-    "WmQualitySettings", "ForesightSettings", "HeadroomSettings", "RoomFillSettings", "figures_settings", "resource_settings",
+    "WmQualitySettings", "ForesightSettings", "HeadroomSettings", "RoomFillSettings", "figures_settings",
+    "resource_settings",
     "Untracked", "audit_slice", "calibrate_slice", "eda_slice", "evaluate_slice", "experiment_slice",
     "figures_slice", "mlflow_slice", "param", "prep_slice", "probe_slice", "read_param", "runtime", "select_slice",
-    "tables_slice", "tracking", "train_slice", "room_fill_slice", "variant_evaluate_slice", "variant_retrains", "variant_train_slice",
+    "tables_slice", "tracking", "train_slice", "room_fill_slice", "variant_evaluate_slice", "variant_retrains",
+    "variant_train_slice",
     "ALGORITHM_1", "HEADROOM_METHODS", "PLANNERS", "SOURCE_METHODS", "SOURCES", "VARIANT_KINDS", "Variant",
     "extra_jobs", "extra_variants", "figure_seeds", "figure_variants", "foresight_cells", "foresight_jobs",
     "headroom_jobs", "headroom_variant", "parse_variant", "probe_jobs", "probed_methods", "scale_intensity",

@@ -190,7 +190,8 @@ def headroom_jobs(settings: Settings) -> list[tuple[str, str, str, int]]:
 ROOM_FILL_ARMS = {"greedy": "greedy", "perfect": "perfect", "dswm": ALGORITHM_1, "dswm_plus": "dswm_plus",
                   "dswm_plus_persist": "dswm_plus_persist", "dswm_plus_rhok": "dswm_plus"}
 """{arm: the method it evaluates} of figure ``room_fill``: Greedy and Perfect (the room), Algorithm 1, DSWM+, its
-persistence probe, and the candidate (:data:`ROOM_FILL_CANDIDATE`): DSWM+ with rho_k and gamma fitted on training days."""
+persistence probe, and the candidate (:data:`ROOM_FILL_CANDIDATE`): DSWM+ with rho_k and gamma fitted on training
+days."""
 ROOM_FILL_CANDIDATE = "dswm_plus_rhok"
 """The arm whose planner takes the rho_k and gamma of the room_fill_fit job."""
 

@@ -75,7 +75,8 @@ class PlannerConfig:
         "description": "a list of H numbers in [0, 1] (rho_k of imagined step k = 1..H), or null (rho at every step)"},
         default=None)
     """Anchoring per imagined step: rho_k of step k = 1..H in place of ``rho``; None: ``rho`` at every step (the
-    methods of config.yaml; the room-fill candidate takes rho_k fitted on training days, ``dswm.pipeline.room_fill``)."""
+    methods of config.yaml; the room-fill candidate takes rho_k fitted on training days,
+    ``dswm.pipeline.room_fill``)."""
     lambda_u: float = setting("nonnegative")
     """Uncertainty penalty weight (0 for dswm_wo_unc)."""
     warm_start: bool = setting("flag")
