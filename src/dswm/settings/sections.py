@@ -253,7 +253,8 @@ class RoomFillSettings:
     intensity_scale: float
     """The regime's factor of the calibrated demand intensity u (one of ``figures.headroom.intensity_scales``)."""
     eval_days: EvalDayLimits
-    """How many of each split's test days every run of the figure evaluates (Greedy and Perfect included)."""
+    """At most this many of each split's test days of the profile (``profiles.<p>.eval_days``; None: all of them)
+    every run of the figure evaluates (Greedy and Perfect included)."""
     fit_days: int
     """Training days whose replay fits rho_k: the ``fit_days`` training days before the validation days."""
     validation_days: int

@@ -158,11 +158,15 @@ def variant_evaluate_slice(settings: Settings, method: str, variant: Variant) ->
 
 def room_fill_slice(settings: Settings, arm: str) -> dict:
     """What a ``room_fill_evaluate`` job of ``arm`` (``dswm.settings.ROOM_FILL_ARMS``) reads: its method's evaluate
-    slice under the regime's variant (the main one at the scenario's own cell), on ``figures.room_fill.eval_days``;
-    the candidate's slice also holds ``room_fill`` (its fit job's settings; the rho_k and gamma come from that job)."""
+    slice under the regime's variant (the main one at the scenario's own cell), on the profile's test days
+    (``profiles.<p>.eval_days``) cut to ``figures.room_fill.eval_days``; the candidate's slice also holds
+    ``room_fill`` (its fit job's settings; the rho_k and gamma come from that job)."""
     method, variant, rf = ROOM_FILL_ARMS[arm], room_fill_variant(settings), settings.figures.room_fill
     job = evaluate_slice(settings, method) if variant is None else variant_evaluate_slice(settings, method, variant)
-    job["eval_days"] = to_plain(rf.eval_days)
+    own, cut = settings.run.eval_days, rf.eval_days
+    job["eval_days"] = {s: getattr(own, s) if getattr(cut, s) is None else
+                        getattr(cut, s) if getattr(own, s) is None else min(getattr(own, s), getattr(cut, s))
+                        for s in ("id", "ood")}
     if arm == ROOM_FILL_CANDIDATE:
         job["room_fill"] = to_plain(rf)
     return job
