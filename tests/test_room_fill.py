@@ -160,3 +160,34 @@ def test_room_fill_table_shares_per_split():
         room_fill_table(runs.filter(~((pl.col("arm") == "dswm_plus") & (pl.col("day") == 5))),
                         arms=["greedy", "perfect", "dswm_plus"], labels={"greedy": "G", "perfect": "P", "dswm_plus": "D"},
                         regime={"dataset": "shanghai", "d_max_m": 1500.0, "intensity_scale": 2.0}, split_labels={})
+
+
+def _settings(profile, **room_fill):
+    import copy
+    from pathlib import Path
+
+    import yaml
+
+    from dswm import settings as S
+
+    config = copy.deepcopy(yaml.safe_load((Path(__file__).parents[1] / "config.yaml").read_text()))
+    config["profile"] = profile
+    config["figures"]["room_fill"].update(room_fill)
+    return S, S.resolve(config)
+
+
+def test_room_fill_runs_the_profiles_test_days_in_the_regime_of_the_headroom_map():
+    S, demo = _settings("demo")
+    assert S.room_fill_variant(demo).name == "D1500u2"
+    assert [a for _, a, _ in S.room_fill_jobs(demo)] == ["greedy", "perfect", "dswm", "dswm_plus", "dswm_plus_persist",
+                                                         "dswm_plus_rhok"]
+    greedy, candidate = S.room_fill_slice(demo, "greedy"), S.room_fill_slice(demo, "dswm_plus_rhok")
+    assert greedy["eval_days"] == candidate["eval_days"] == {"id": 2, "ood": 1}   # the demo profile's test days
+    assert greedy["intensity_scale"] == 2.0 and greedy["scenario"]["d_max_m"] == 1500.0
+    assert "room_fill" in candidate and "room_fill" not in greedy
+    assert candidate["method"]["options"]["planner"]["rho_steps"] is None  # until the fit's record fills it
+    _, cut = _settings("demo", eval_days={"id": 1, "ood": None})
+    assert S.room_fill_slice(cut, "perfect")["eval_days"] == {"id": 1, "ood": 1}
+    with pytest.raises(ConfigError, match=r"key 'figures.room_fill.intensity_scale' is 3.0, which is no cell of the "
+                                          r"headroom map \(figures.headroom.intensity_scales: \[0.5, 1.0, 2.0\]\)"):
+        _settings("demo", intensity_scale=3.0)

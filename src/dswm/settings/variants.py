@@ -231,7 +231,7 @@ def check_room_fill(settings: Settings) -> None:
                                 ("intensity_scale", rf.intensity_scale, hr.intensity_scales)):
         if value not in allowed:
             raise ConfigError(f"config.yaml: key 'figures.room_fill.{key}' is {value!r}, which is no cell of the "
-                              f"headroom map (figures.headroom.{'datasets' if key == 'dataset' else key}: "
+                              f"headroom map (figures.headroom.{ {'dataset': 'datasets', 'intensity_scale': 'intensity_scales'}.get(key, key)}: "
                               f"{list(allowed)}); the regime is one the map measured")
 
 
