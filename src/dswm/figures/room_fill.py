@@ -93,6 +93,7 @@ def draw_room_fill(table: pl.DataFrame, fits: Sequence[Mapping], *, profile: str
     bx.legend(fontsize=7)
     name = f"{regime['dataset']}, D_max {regime['d_max_m']:g} m, u x {regime['intensity_scale']:g}"
     fig.suptitle(f"DSWM+ where the room is: {name} ({profile})", fontsize=10)
+    fig.subplots_adjust(bottom=0.34, wspace=0.25)  # the arms' labels, then the caption below them
     save_figure(fig, table, **out, profile=profile, source=source, caption=CAPTION.format(regime=name))
 
 
