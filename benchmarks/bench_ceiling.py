@@ -1,6 +1,7 @@
 """The ceiling's convergence check: does doubling its search raise the per-slot ceiling by less than 0.001?
 
 Run: python benchmarks/bench_ceiling.py [--results results] [--datasets milan shanghai yjmob] [--days 2]
+[--double SETTING...]
 Writes benchmarks/results/ceiling_doubling.json (``--name``). The datasets can run as separate processes, each with
 its own ``--name``, and ``--merge NAME...`` then writes their reports, of the same settings, as one.
 The committed ceiling_doubling.json was run on the DEMO tensors (``--results`` a demo run's results directory: its
@@ -14,7 +15,8 @@ lattice points per axis, twice the logit resolution) on ``--days`` TRAINING days
 itself (``dswm.protocol.evaluation.evaluate``). Reported per dataset: each day's served ratio at both strengths,
 the rise of each day, of the largest and of their mean, and the CPU milliseconds per day-slot of each evaluation (one
 thread: the work done, whatever else the machine runs). The check passes when the mean served ratio of the days
-rises by less than 0.001 on every dataset.
+rises by less than 0.001 on every dataset. ``--double SETTING...`` doubles only the settings named (``chains``,
+``bw_logits``, ...), to find which one carries a rise; its report is not the check.
 """
 from __future__ import annotations
 
@@ -87,6 +89,8 @@ def main() -> None:
     ap.add_argument("--datasets", nargs="+", default=["milan", "shanghai", "yjmob"])
     ap.add_argument("--days", type=int, default=2, help="training days per dataset")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--double", nargs="+", metavar="SETTING", help="double only these settings (e.g. chains fresh: "
+                    "which one carries the rise); every setting when left out, as the check")
     ap.add_argument("--name", default="ceiling_doubling", help="benchmarks/results/<name>.json")
     ap.add_argument("--merge", nargs="+", metavar="NAME", help="write the reports benchmarks/results/<NAME>.json "
                     "(of the same settings) as one, benchmarks/results/<name>.json, and run nothing")
@@ -102,7 +106,7 @@ def main() -> None:
     results = ROOT / args.results
     scenario, source = scenario_for(settings, results / "calibration" / "demand_intensity.json", ROOT)
     base = runconfig.build(CeilingSettings, *with_budget(config["ceiling"], "demo", "ceiling"))  # the demo's = the paper's
-    doubled = base.doubled()
+    doubled = base.doubled(args.double)
     report = {"settings": to_plain(base), "doubled": to_plain(doubled), "tolerance": TOLERANCE,
               "intensity_from": source, "datasets": {}}
     for ds in args.datasets:

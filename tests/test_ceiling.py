@@ -66,6 +66,16 @@ def test_doubling_doubles_every_setting_and_halves_the_logit_step():
     assert d.bw_logits[0] == 0.0  # 0 first: a tie keeps the demand-proportional split
 
 
+def test_doubling_only_named_settings_leaves_the_others_and_names_an_unknown_one():
+    d = SETTINGS.doubled(["chains", "bw_logits"])
+    assert (d.sweeps, d.lattice, d.keep, d.refine, d.chains, d.fresh) == (4, 9, 2, 3, 4, 1)
+    assert sorted(d.bw_logits) == [-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
+    with pytest.raises(ValueError) as err:
+        SETTINGS.doubled(["chain"])
+    assert str(err.value) == ("ceiling: cannot double ['chain']; the settings are ['sweeps', 'lattice', 'keep', "
+                              "'refine', 'chains', 'fresh', 'bw_logits']")
+
+
 def test_the_lattice_spans_the_whole_area_cell_centred():
     pts = area_lattice(4, 1000.0, 2000.0)
     assert pts.shape == (16, 2)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, ClassVar, Mapping, Sequence
+from typing import Any, ClassVar, Collection, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -65,15 +65,19 @@ class CeilingSettings:
         # 0 first, so a tie keeps the demand-proportional split.
         object.__setattr__(self, "bw_logits", tuple(sorted((float(v) for v in self.bw_logits), key=abs)))
 
-    def doubled(self) -> "CeilingSettings":
+    def doubled(self, only: Collection[str] | None = None) -> "CeilingSettings":
         """Every setting doubled: twice the sweeps, kept points, refinement rounds, chains and fresh starts, a lattice
         of twice the points per axis and a logit set of twice the resolution (the convergence check,
-        ``benchmarks/bench_ceiling.py``)."""
+        ``benchmarks/bench_ceiling.py``); or only the settings named in ``only`` (which one carries a rise)."""
+        names = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(only or ()) - set(names))
+        if unknown:
+            raise ValueError(f"{self.section}: cannot double {unknown}; the settings are {names}")
         levels = sorted(set(self.bw_logits))
         mids = [(a + b) / 2 for a, b in zip(levels, levels[1:])]
-        return dataclasses.replace(self, sweeps=2 * self.sweeps, lattice=2 * self.lattice, keep=2 * self.keep,
-                                   refine=2 * self.refine, chains=2 * self.chains, fresh=2 * self.fresh,
-                                   bw_logits=tuple(levels + mids))
+        twice = {name: 2 * getattr(self, name) for name in names if name != "bw_logits"}
+        twice["bw_logits"] = tuple(levels + mids)
+        return dataclasses.replace(self, **{k: v for k, v in twice.items() if only is None or k in only})
 
 
 CHUNK_FLEETS = 256
