@@ -84,10 +84,11 @@ def smoke_tables(slurm_smoke, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def smoke_run(smoke_tables):
-    """The tree of smoke_tables where the smoke DAG's `figures` has run too (the integration tests check it)."""
+    """The tree of smoke_tables where the smoke DAG's `figures` and `room_fill` have run too (the integration tests
+    check it)."""
     from smoke import run_smoke
 
-    return run_smoke(smoke_tables, "figures", "figures")
+    return run_smoke(smoke_tables, "figures", "figures", "room_fill")
 
 
 @pytest.fixture(scope="session")

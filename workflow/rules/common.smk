@@ -206,11 +206,13 @@ FIGURE_TARGETS = []
 """Every file the `figures` target asks for; each figure rule file appends its figures' PNG, PDF and CSV."""
 
 
-def figure_outputs(name, category, subcategory=None):
+def figure_outputs(name, category, subcategory=None, figures=True):
     """The outputs of figure ``name``: PNG (in the Snakemake report, captioned by workflow/report/<name>.rst),
-    PDF and CSV under results/figures/; the three are added to the `figures` target."""
+    PDF and CSV under results/figures/; the three are added to the `figures` target unless ``figures`` is False
+    (a figure with a target of its own, e.g. `room_fill`)."""
     files = {ext: f"{FIGURE_DIR}/{name}.{ext}" for ext in ("png", "pdf", "csv")}
-    FIGURE_TARGETS.extend(files.values())
+    if figures:
+        FIGURE_TARGETS.extend(files.values())
     labels = {"figure": name}
     return {
         "png": report(files["png"], caption=f"../report/{name}.rst", category=category, subcategory=subcategory,

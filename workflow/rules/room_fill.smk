@@ -85,7 +85,7 @@ if ROOM_FILL_ARMS_ON:
                   for s in S.figure_seeds(SETTINGS, _RF.dataset)],
             mlflow=rules.mlflow_init.output.marker,  # the figure is logged beside its runs
         output:
-            **figure_outputs("room_fill", "Where foresight pays"),
+            **figure_outputs("room_fill", "Where foresight pays", figures=False),  # its own target, below
         params:
             attach=figure_attach(["extra"], [_RF.dataset], dict.fromkeys(ROOM_FILL_ARMS_ON.values())),
             profile=PROFILE,
@@ -104,3 +104,10 @@ if ROOM_FILL_ARMS_ON:
             **job_resources("figure_room_fill"),
         script:
             "../scripts/figure_room_fill.py"
+
+
+    # The target: `snakemake --cores 2 room_fill`, after `tables` (not part of `tables` or `figures`: its training in
+    # the regime, fit and six arms cost ~10 CPU-minutes on the demo, which `figures` has no room for within 20 min).
+    rule room_fill:
+        input:
+            rules.figure_room_fill.output,
