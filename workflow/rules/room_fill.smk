@@ -107,7 +107,7 @@ if ROOM_FILL_ARMS_ON:
 
 
     # The target: `snakemake --cores 2 room_fill`, after `tables` (not part of `tables` or `figures`: its training in
-    # the regime, fit and six arms cost ~10 CPU-minutes on the demo, which `figures` has no room for within 20 min).
+    # the regime, fit and six arms cost ~4.5 CPU-minutes on the demo, which `figures` has no room for within 20 min).
     rule room_fill:
         input:
             rules.figure_room_fill.output,
