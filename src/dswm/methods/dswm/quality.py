@@ -70,6 +70,16 @@ def open_loop_maps(model, posts: LatentState, actions: np.ndarray, starts: np.nd
     return torch.stack(maps).cpu().numpy()
 
 
+def aligned_maps(pred: np.ndarray, demand: np.ndarray,
+                 starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The maps an imagined step is judged by, in float64: (x_t (N, G) of each start t, x_{t+k} (H, N, G) of each
+    step k = 1..H, the imagined maps ``pred`` (H, N, G)); demand: (T, G) realized maps; starts: (N,) start slots."""
+    starts = np.asarray(starts, dtype=np.int64)
+    now = demand[starts].astype(np.float64)
+    truth = np.stack([demand[starts + k] for k in range(1, pred.shape[0] + 1)]).astype(np.float64)
+    return now, truth, pred.astype(np.float64)
+
+
 def demand_errors(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray, rho: float) -> dict[str, np.ndarray]:
     """Mean squared demand error per imagined step, over starts and cells.
 
@@ -80,11 +90,7 @@ def demand_errors(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray, rho:
         {"mse_model", "mse_anchored", "mse_persistence"}: (H,) each, entry k-1 the mean over starts t and cells of
         the squared error against x_{t+k} of the model's map, of rho x_t + (1 - rho) model map, and of x_t.
     """
-    horizon = pred.shape[0]
-    starts = np.asarray(starts, dtype=np.int64)
-    now = demand[starts].astype(np.float64)                                            # (N, G)
-    truth = np.stack([demand[starts + k] for k in range(1, horizon + 1)]).astype(np.float64)  # (H, N, G)
-    model = pred.astype(np.float64)
+    now, truth, model = aligned_maps(pred, demand, starts)
     anchored = rho * now[None] + (1.0 - rho) * model
     return {"mse_model": ((model - truth) ** 2).mean(axis=(1, 2)),
             "mse_anchored": ((anchored - truth) ** 2).mean(axis=(1, 2)),
@@ -152,13 +158,9 @@ def anchor_moments(pred: np.ndarray, demand: np.ndarray, starts: np.ndarray) -> 
     Returns:
         {"xm": sum (x - m)^2, "xm_my": sum (x - m)(m - y), "mm": sum (m - y)^2, "n": number of terms}, (H,) each.
     """
-    horizon = pred.shape[0]
-    starts = np.asarray(starts, dtype=np.int64)
-    now = demand[starts].astype(np.float64)[None]                                           # (1, N, G)
-    truth = np.stack([demand[starts + k] for k in range(1, horizon + 1)]).astype(np.float64)  # (H, N, G)
-    model = pred.astype(np.float64)
-    d, e = now - model, model - truth
-    n = np.full(horizon, float(d.shape[1] * d.shape[2]))
+    now, truth, model = aligned_maps(pred, demand, starts)
+    d, e = now[None] - model, model - truth
+    n = np.full(pred.shape[0], float(d.shape[1] * d.shape[2]))
     return {"xm": (d * d).sum(axis=(1, 2)), "xm_my": (d * e).sum(axis=(1, 2)), "mm": (e * e).sum(axis=(1, 2)), "n": n}
 
 
