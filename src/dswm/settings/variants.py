@@ -227,12 +227,14 @@ def check_room_fill(settings: Settings) -> None:
         ConfigError: naming the key and the map's values.
     """
     rf, hr = settings.figures.room_fill, settings.figures.headroom
-    for key, value, allowed in (("dataset", rf.dataset, hr.datasets), ("d_max_m", rf.d_max_m, hr.d_max_m),
-                                ("intensity_scale", rf.intensity_scale, hr.intensity_scales)):
+    for key, value, map_key, allowed in (("dataset", rf.dataset, "datasets", hr.datasets),
+                                         ("d_max_m", rf.d_max_m, "d_max_m", hr.d_max_m),
+                                         ("intensity_scale", rf.intensity_scale, "intensity_scales",
+                                          hr.intensity_scales)):
         if value not in allowed:
             raise ConfigError(f"config.yaml: key 'figures.room_fill.{key}' is {value!r}, which is no cell of the "
-                              f"headroom map (figures.headroom.{ {'dataset': 'datasets', 'intensity_scale': 'intensity_scales'}.get(key, key)}: "
-                              f"{list(allowed)}); the regime is one the map measured")
+                              f"headroom map (figures.headroom.{map_key}: {list(allowed)}); the regime is one the "
+                              f"map measured")
 
 
 def figure_variants(settings: Settings) -> list[Variant]:
