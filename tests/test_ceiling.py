@@ -1,5 +1,6 @@
 """The per-slot ceiling: its settings, its search, and that it bounds the controllers with the environment's physics."""
 import copy
+import dataclasses
 
 import numpy as np
 import polars as pl
@@ -19,7 +20,7 @@ from test_evaluation import RUN, toy_tensor
 from conftest import ROOT
 
 GRID = Grid(rows=6, cols=6, cell_m=235.0)
-SETTINGS = CeilingSettings(sweeps=4, lattice=9, keep=2, refine=3, chains=2, fresh=1,
+SETTINGS = CeilingSettings(sweeps=4, lattice=9, keep=2, refine=3, chains=2, fresh=1, polish=0,
                            bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
 SEARCH = SearchSettings(sweeps=2, lattice=7, refine=2, bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
 
@@ -49,6 +50,7 @@ def test_the_ceiling_is_a_clairvoyant_upper_bound_with_its_own_section_and_no_sh
     ("keep", 0, "an integer >= 1"),
     ("fresh", 0, "an integer >= 1"),
     ("refine", -1, "an integer >= 0"),
+    ("polish", -1, "an integer >= 0"),
     ("bw_logits", [0.5], "a non-empty list of bandwidth logits in [-1, 1] that includes 0"),
 ])
 def test_a_wrong_ceiling_value_is_refused_with_its_key_the_expected_form_and_what_was_found(key, value, expected):
@@ -60,20 +62,54 @@ def test_a_wrong_ceiling_value_is_refused_with_its_key_the_expected_form_and_wha
 
 
 def test_doubling_doubles_every_setting_and_halves_the_logit_step():
-    d = SETTINGS.doubled()
-    assert (d.sweeps, d.lattice, d.keep, d.refine, d.chains, d.fresh) == (8, 18, 4, 6, 4, 2)
+    d = dataclasses.replace(SETTINGS, polish=2).doubled()
+    assert (d.sweeps, d.lattice, d.keep, d.refine, d.chains, d.fresh, d.polish) == (8, 18, 4, 6, 4, 2, 4)
     assert sorted(d.bw_logits) == [-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
     assert d.bw_logits[0] == 0.0  # 0 first: a tie keeps the demand-proportional split
 
 
 def test_doubling_only_named_settings_leaves_the_others_and_names_an_unknown_one():
     d = SETTINGS.doubled(["chains", "bw_logits"])
-    assert (d.sweeps, d.lattice, d.keep, d.refine, d.chains, d.fresh) == (4, 9, 2, 3, 4, 1)
+    assert (d.sweeps, d.lattice, d.keep, d.refine, d.chains, d.fresh, d.polish) == (4, 9, 2, 3, 4, 1, 0)
     assert sorted(d.bw_logits) == [-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
     with pytest.raises(ValueError) as err:
         SETTINGS.doubled(["chain"])
     assert str(err.value) == ("ceiling: cannot double ['chain']; the settings are ['sweeps', 'lattice', 'keep', "
-                              "'refine', 'chains', 'fresh', 'bw_logits']")
+                              "'refine', 'polish', 'chains', 'fresh', 'bw_logits']")
+
+
+def test_polish_searches_the_slots_best_placement_again_with_finer_rounds_and_never_serves_less(make_scenario):
+    """The first slot of each toy day (the same starts with and without polish): the polished placement serves at
+    least what the plain search's best one serves, more on some day, and is what the search reaches from that best
+    placement with refine + polish rounds."""
+    scn = make_scenario(n_uavs=3, demand_intensity=150.0)
+    t = toy_tensor()
+    grid = core_from_tensor(t, scn, [0]).grid
+    params = ServiceParams.from_scenario(scn)
+    from dswm.methods.base import DayContext
+
+    polished = dataclasses.replace(SETTINGS, polish=3)
+    gains = []
+    for day in range(t.demand.shape[0]):
+        ctx = DayContext(dataset="toy", day=day, label=f"d{day}", split="id", grid=grid, scenario=scn,
+                         geometry=grid.geometry(), cells=grid.cells(),
+                         init_pos=core_from_tensor(t, scn, [day]).init_pos.numpy(), demand=t.demand[day])
+        x = torch.as_tensor(t.demand[day][1].reshape(1, -1))
+        served = {}
+        for opts in (SETTINGS, polished):
+            ctl = CeilingController(name="ceiling", options=opts)
+            ctl.reset_batch([ctx])
+            pos, logit = ctl.place_batch({})
+            served[opts.polish] = float(served_ratio(x, torch.as_tensor(pos), torch.ones(1, 3, dtype=torch.bool),
+                                                     grid.cells(), params=params, bw_logit=torch.as_tensor(logit))[0])
+            if opts.polish == 0:
+                plain = (torch.as_tensor(pos).unsqueeze(1), torch.as_tensor(logit).unsqueeze(1))
+        again = ceiling_search(x, *plain, settings=dataclasses.replace(SETTINGS, refine=6), cells=grid.cells(),
+                               geom=grid.geometry(), params=params)[2]
+        assert served[3] == pytest.approx(float(again[0, 0]), abs=1e-6), day
+        gains.append(served[3] - served[0])
+    assert min(gains) >= -1e-6, gains
+    assert max(gains) > 1e-4, gains
 
 
 def test_the_lattice_spans_the_whole_area_cell_centred():

@@ -46,6 +46,11 @@ class CeilingSettings:
     refine: int = setting("natural")
     """Rounds of local refinement of each kept point (on its 8 neighbours at half the previous spacing) and of the
     chosen logit (on its 2 neighbours at half the previous step of ``bw_logits``)."""
+    polish: int = setting("natural")
+    """Further rounds of refinement for the slot's best placement alone: once every start is searched, the best one
+    is searched again from itself with ``refine + polish`` rounds (spacings and logit steps down to 2^-(refine +
+    polish) of the lattice's and the logit set's), so the bound's resolution is fine where it matters at the cost of
+    one start."""
     chains: int = setting("count")
     """Best placements of a slot carried to the next as starts (at slot 1: the initial deployment)."""
     fresh: int = setting("count")
@@ -75,7 +80,7 @@ class CeilingSettings:
             raise ValueError(f"{self.section}: cannot double {unknown}; the settings are {names}")
         levels = sorted(set(self.bw_logits))
         mids = [(a + b) / 2 for a, b in zip(levels, levels[1:])]
-        twice = {name: 2 * getattr(self, name) for name in names if name != "bw_logits"}
+        twice = {name: 2 * getattr(self, name) for name in names if name != "bw_logits"}  # polish 0 stays 0
         twice["bw_logits"] = tuple(levels + mids)
         return dataclasses.replace(self, **{k: v for k, v in twice.items() if only is None or k in only})
 
@@ -315,7 +320,7 @@ class CeilingController(BatchedController):
     def place_batch(self, obs: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """The placement (B, K, 2) metres and bandwidth logits (B, K) for the next slot's TRUE map x_{t+1}: the best
         placement the search reaches from the chains (the best placements of the slot before; at slot 1 the initial
-        deployment) and from the fresh starts of this slot's map."""
+        deployment) and from the fresh starts of this slot's map, that best one then polished (``polish``)."""
         self.t += 1
         x = self.future[:, self.t]  # (B, G)
         b, k = self.init.shape[:2]
@@ -324,12 +329,18 @@ class CeilingController(BatchedController):
         fresh = self.fresh_starts(x, self.options.fresh)
         starts = torch.cat([self.chains[0], *(f.unsqueeze(1) for f in fresh)], dim=1)
         logits = torch.cat([self.chains[1], torch.zeros(b, len(fresh), k)], dim=1)
+        days = torch.arange(b).unsqueeze(1)
         with torch.no_grad():
             pos, logit, sr = ceiling_search(x, starts, logits, settings=self.options, cells=self.cells,
                                             geom=self.geom, params=self.params)
+            if self.options.polish:  # the best placement searched again with finer rounds (it cannot serve less)
+                top = sr.argmax(dim=1, keepdim=True)  # (B, 1): the first of equals
+                fine = dataclasses.replace(self.options, refine=self.options.refine + self.options.polish)
+                pos[days, top], logit[days, top], sr[days, top] = ceiling_search(
+                    x, pos[days, top], logit[days, top], settings=fine, cells=self.cells, geom=self.geom,
+                    params=self.params)
         # The `chains` best placements carry on to the next slot (a stable sort: ties to the earlier start).
         order = torch.sort(sr, dim=1, descending=True, stable=True).indices[:, : self.options.chains]
-        days = torch.arange(b).unsqueeze(1)
         self.chains = (pos[days, order], logit[days, order])
         return pos[days[:, 0], order[:, 0]].numpy(), logit[days[:, 0], order[:, 0]].numpy()
 
