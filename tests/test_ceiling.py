@@ -9,6 +9,7 @@ import torch
 
 from dswm import settings as runconfig
 from dswm.config import load_yaml
+from dswm.methods.base import DayContext
 from dswm.methods.ceiling import CeilingController, CeilingSettings, area_lattice, ceiling_search
 from dswm.methods.classical import OracleController, StaticController
 from dswm.methods.search import SearchSettings
@@ -84,30 +85,29 @@ def test_polish_searches_the_slots_best_placement_again_with_finer_rounds_and_ne
     placement with refine + polish rounds."""
     scn = make_scenario(n_uavs=3, demand_intensity=150.0)
     t = toy_tensor()
-    grid = core_from_tensor(t, scn, [0]).grid
     params = ServiceParams.from_scenario(scn)
-    from dswm.methods.base import DayContext
-
     polished = dataclasses.replace(SETTINGS, polish=3)
+
+    def first_slot(opts, ctx, x, cells):
+        """The placement and logits (as tensors) the ceiling at ``opts`` gives slot 1 of ``ctx``, and their served
+        ratio on that slot's map ``x``."""
+        ctl = CeilingController(name="ceiling", options=opts)
+        ctl.reset_batch([ctx])
+        pos, logit = (torch.as_tensor(a) for a in ctl.place_batch({}))
+        sr = served_ratio(x, pos, torch.ones(1, 3, dtype=torch.bool), cells, params=params, bw_logit=logit)
+        return pos, logit, float(sr[0])
+
     gains = []
     for day in range(t.demand.shape[0]):
-        ctx = DayContext(dataset="toy", day=day, label=f"d{day}", split="id", grid=grid, scenario=scn,
-                         geometry=grid.geometry(), cells=grid.cells(),
-                         init_pos=core_from_tensor(t, scn, [day]).init_pos.numpy(), demand=t.demand[day])
+        core = core_from_tensor(t, scn, [day])
+        ctx, cells = toy_context(core, t, scn, day), core.grid.cells()
         x = torch.as_tensor(t.demand[day][1].reshape(1, -1))
-        served = {}
-        for opts in (SETTINGS, polished):
-            ctl = CeilingController(name="ceiling", options=opts)
-            ctl.reset_batch([ctx])
-            pos, logit = ctl.place_batch({})
-            served[opts.polish] = float(served_ratio(x, torch.as_tensor(pos), torch.ones(1, 3, dtype=torch.bool),
-                                                     grid.cells(), params=params, bw_logit=torch.as_tensor(logit))[0])
-            if opts.polish == 0:
-                plain = (torch.as_tensor(pos).unsqueeze(1), torch.as_tensor(logit).unsqueeze(1))
-        again = ceiling_search(x, *plain, settings=dataclasses.replace(SETTINGS, refine=6), cells=grid.cells(),
-                               geom=grid.geometry(), params=params)[2]
-        assert served[3] == pytest.approx(float(again[0, 0]), abs=1e-6), day
-        gains.append(served[3] - served[0])
+        pos, logit, plain = first_slot(SETTINGS, ctx, x, cells)
+        fine = first_slot(polished, ctx, x, cells)[2]
+        again = ceiling_search(x, pos.unsqueeze(1), logit.unsqueeze(1), cells=cells, geom=core.grid.geometry(),
+                               settings=dataclasses.replace(SETTINGS, refine=6), params=params)[2]
+        assert fine == pytest.approx(float(again[0, 0]), abs=1e-6), day
+        gains.append(fine - plain)
     assert min(gains) >= -1e-6, gains
     assert max(gains) > 1e-4, gains
 
@@ -137,16 +137,21 @@ def test_the_search_finds_two_far_hotspots_that_no_one_slot_reach_joins(make_sce
     assert float(sr[0, 0]) > 5 * float(apart[0])
 
 
+def toy_context(core, tensor, scn, day):
+    """The context of ``day`` of the toy tensor for a core built on that day (its grid and initial fleet), with the
+    day's true demand (the ceiling is clairvoyant)."""
+    grid = core.grid
+    return DayContext(dataset="toy", day=day, label=f"d{day}", split="id", grid=grid, scenario=scn,
+                      geometry=grid.geometry(), cells=grid.cells(), init_pos=core.init_pos.numpy(),
+                      demand=tensor.demand[day])
+
+
 def oracle_and_ceiling_slot_by_slot(scn, tensor, day):
     """Served ratio per slot of the oracle (flying, batteries) and of the ceiling (placed) on one day, each on its
     own core; the ceiling's checked against the physics called directly on its placement."""
     cores = [core_from_tensor(tensor, scn, [day]) for _ in range(2)]
     grid = cores[0].grid
-    from dswm.methods.base import DayContext
-
-    ctx = DayContext(dataset="toy", day=day, label=f"d{day}", split="id", grid=grid, scenario=scn,
-                     geometry=grid.geometry(), cells=grid.cells(), init_pos=cores[0].init_pos.numpy(),
-                     demand=tensor.demand[day])
+    ctx = toy_context(cores[0], tensor, scn, day)
     oracle = OracleController(name="oracle", options=SEARCH)
     ceiling = CeilingController(name="ceiling", options=SETTINGS)
     obs = [c.reset([0]) for c in cores]
