@@ -169,6 +169,26 @@ def test_td_target_bootstraps_on_the_truncated_last_transition(scn, replay):
     torch.testing.assert_close(lrn.td_target(*nxt, r, torch.ones(1, dtype=torch.bool)), r)
 
 
+def test_losses_encode_the_next_observations_once_for_the_consistency_and_td_targets(scn, replay):
+    # losses() runs the target encoder once on o_1..o_H for both targets: its TD targets and consistency term
+    # equal td_target's and the by-hand consistency on separately encoded targets.
+    lrn = learner_for(scn)
+    with torch.no_grad():
+        for head in (lrn.target.q1, lrn.target.q2):
+            head[-1].weight.normal_(0.0, 1.0)
+            head[-1].bias.fill_(-1.0)
+    b = replay.sample_windows(16, 3, torch.Generator().manual_seed(5))
+    _, zs, m = lrn.losses(b)
+    nxt = [b[k][1:] for k in ("demand", "fleet", "time")]
+    y = lrn.td_target(*nxt, b["reward"], b["terminated"])
+    assert abs(float(y.mean() - b["reward"].mean())) > 0.1          # the bootstrap term matters here
+    assert m["td_target"] == pytest.approx(float(y.mean()), rel=1e-6)
+    with torch.no_grad():
+        z_target = lrn.target.encode(*nxt)
+        cons = sum(0.5 ** t * ((zs[t + 1] - z_target[t]) ** 2).mean(-1) for t in range(3)).mean()
+    assert m["consistency"] == pytest.approx(float(cons), rel=1e-5)
+
+
 # ----------------------------------------------------------------------------------- learning
 
 def test_gradient_steps_lower_the_told_loss_on_a_fixed_batch(scn, replay):

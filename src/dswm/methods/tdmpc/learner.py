@@ -28,8 +28,10 @@ METRICS = ("total", "consistency", "reward", "value", "pi", "td_target")
 @torch.no_grad()
 def polyak(target: nn.Module, online: nn.Module, tau: float) -> None:
     """theta' <- (1 - tau) theta' + tau theta, in place."""
-    for p_t, p in zip(target.parameters(), online.parameters(), strict=True):
-        p_t.lerp_(p.detach(), tau)
+    p_t, p_o = list(target.parameters()), [p.detach() for p in online.parameters()]
+    if len(p_t) != len(p_o):
+        raise ValueError(f"polyak: the target has {len(p_t)} parameters, the online network {len(p_o)}")
+    torch._foreach_lerp_(p_t, p_o, tau)      # one call over all tensors: the same values as a loop of lerp_
 
 
 class Learner:
@@ -54,7 +56,11 @@ class Learner:
 
         Args: next observations with leading shape (...), reward (...), terminated (...) bool.  Returns: (...).
         """
-        z_next = self.target.encode(demand, fleet, time)
+        return self.bootstrap(self.target.encode(demand, fleet, time), reward, terminated)
+
+    @torch.no_grad()
+    def bootstrap(self, z_next: torch.Tensor, reward: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
+        """``td_target`` from the target encoder's latents z' = h'(o') (...,  latent) of the next observations."""
         q1, q2 = self.target.q(z_next, self.model.pi(z_next))
         return reward + self.s.gamma * (~terminated).to(reward.dtype) * torch.minimum(q1, q2)
 
@@ -65,10 +71,9 @@ class Learner:
             (TOLD loss (scalar, divided by H), [z_0..z_H] each (B, latent), {metric: value}).
         """
         s, horizon = self.s, batch["action"].shape[0]
-        nxt = {k: batch[k][1:] for k in ("demand", "fleet", "time")}
-        y = self.td_target(nxt["demand"], nxt["fleet"], nxt["time"], batch["reward"], batch["terminated"])
-        with torch.no_grad():
-            z_target = self.target.encode(nxt["demand"], nxt["fleet"], nxt["time"])      # (H, B, latent)
+        with torch.no_grad():     # h'(o_1..o_H), once: the consistency targets and the TD targets' z'
+            z_target = self.target.encode(batch["demand"][1:], batch["fleet"][1:], batch["time"][1:])  # (H, B, latent)
+        y = self.bootstrap(z_target, batch["reward"], batch["terminated"])
         z = self.model.encode(batch["demand"][0], batch["fleet"][0], batch["time"][0])
         zs, cons, rew, val = [z], 0.0, 0.0, 0.0
         for t in range(horizon):
