@@ -122,8 +122,8 @@ def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainCo
         torch.nn.utils.clip_grad_norm_(model.online_parameters(), cfg.grad_clip)
         opt.step()
         model.update_teacher()
-        for k in HISTORY_KEYS:
-            acc[k] += float(metrics[k])
+        for k, v in zip(HISTORY_KEYS, torch.stack([metrics[k] for k in HISTORY_KEYS]).tolist()):  # one read
+            acc[k] += v
         n_acc += 1
         if n_acc == window or step + 1 == steps:
             history["step"].append(step + 1)

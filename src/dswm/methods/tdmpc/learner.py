@@ -86,8 +86,8 @@ class Learner:
             zs.append(z)
         cons, rew, val = cons.mean(), rew.mean(), val.mean()
         total = (s.consistency_coef * cons + s.reward_coef * rew + s.value_coef * val) / horizon
-        return total, zs, {"total": total.item(), "consistency": cons.item(), "reward": rew.item(),
-                           "value": val.item(), "td_target": y.mean().item()}
+        values = torch.stack([total, cons, rew, val, y.mean()]).detach().tolist()   # one device read, not five
+        return total, zs, dict(zip(("total", "consistency", "reward", "value", "td_target"), values))
 
     def policy_loss(self, zs: list[torch.Tensor]) -> torch.Tensor:
         """-min_i Q_i(z, pi(z)) on the detached latents, rho-weighted and normalized (Q frozen)."""
