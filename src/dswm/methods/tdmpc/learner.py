@@ -10,6 +10,11 @@ For a window of H+1 observations o_0..o_H, actions a_0..a_{H-1} and rewards r_0.
 The TOLD loss (consistency, reward and value, weighted) is divided by H as in TD-MPC; after each step the target
 network moves towards the online one by Polyak averaging (``tau``). The environment never terminates (a day's
 end TRUNCATES), so term_t is always 0 and every target bootstraps, the day's last transition included.
+
+``matmul_dtype: bfloat16`` runs the forward passes of both losses under torch's autocast: convolutions and matrix
+products in bfloat16 (float32 accumulation), the activations between them in bfloat16; every network output is
+taken back to float32 before it enters a loss, so the loss sums, the gradients as stored, the weights and Adam's
+state stay float32. ``float32`` leaves every operation as it was.
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ import copy
 import torch
 from torch import nn
 
+from dswm.methods.matmul import MATMUL_DTYPES
 from dswm.methods.tdmpc.model import TOLD
 from dswm.methods.tdmpc.settings import TDMPCSettings
 
@@ -49,6 +55,11 @@ class Learner:
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 
+    def autocast(self) -> torch.autocast:
+        """The losses' forward in ``matmul_dtype`` (see the module docstring); disabled for float32."""
+        dtype = MATMUL_DTYPES[self.s.matmul_dtype]
+        return torch.autocast(self.device.type, dtype=dtype, enabled=dtype != torch.float32)
+
     @torch.no_grad()
     def td_target(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor, reward: torch.Tensor,
                   terminated: torch.Tensor) -> torch.Tensor:
@@ -62,7 +73,7 @@ class Learner:
     def bootstrap(self, z_next: torch.Tensor, reward: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
         """``td_target`` from the target encoder's latents z' = h'(o') (...,  latent) of the next observations."""
         q1, q2 = self.target.q(z_next, self.model.pi(z_next))
-        return reward + self.s.gamma * (~terminated).to(reward.dtype) * torch.minimum(q1, q2)
+        return reward + self.s.gamma * (~terminated).to(reward.dtype) * torch.minimum(q1, q2).float()
 
     def losses(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor], dict[str, float]]:
         """The TOLD loss of one batch (``TransitionReplay.sample_windows``), the rolled-out latents and metrics.
@@ -71,19 +82,20 @@ class Learner:
             (TOLD loss (scalar, divided by H), [z_0..z_H] each (B, latent), {metric: value}).
         """
         s, horizon = self.s, batch["action"].shape[0]
-        with torch.no_grad():     # h'(o_1..o_H), once: the consistency targets and the TD targets' z'
-            z_target = self.target.encode(batch["demand"][1:], batch["fleet"][1:], batch["time"][1:])  # (H, B, latent)
-        y = self.bootstrap(z_target, batch["reward"], batch["terminated"])
-        z = self.model.encode(batch["demand"][0], batch["fleet"][0], batch["time"][0])
-        zs, cons, rew, val = [z], 0.0, 0.0, 0.0
-        for t in range(horizon):
-            w = s.rho ** t
-            q1, q2 = self.model.q(z, batch["action"][t])
-            z, r_hat = self.model.next(z, batch["action"][t])
-            cons = cons + w * ((z - z_target[t]) ** 2).mean(-1)
-            rew = rew + w * (r_hat - batch["reward"][t]) ** 2
-            val = val + w * ((q1 - y[t]) ** 2 + (q2 - y[t]) ** 2)
-            zs.append(z)
+        with self.autocast():     # .float(): each output in float32 (the same tensor when it is one already)
+            with torch.no_grad():     # h'(o_1..o_H), once: the consistency targets and the TD targets' z'
+                z_target = self.target.encode(batch["demand"][1:], batch["fleet"][1:], batch["time"][1:]).float()
+            y = self.bootstrap(z_target, batch["reward"], batch["terminated"])    # z_target: (H, B, latent)
+            z = self.model.encode(batch["demand"][0], batch["fleet"][0], batch["time"][0]).float()
+            zs, cons, rew, val = [z], 0.0, 0.0, 0.0
+            for t in range(horizon):
+                w = s.rho ** t
+                q1, q2 = (q.float() for q in self.model.q(z, batch["action"][t]))
+                z, r_hat = (x.float() for x in self.model.next(z, batch["action"][t]))
+                cons = cons + w * ((z - z_target[t]) ** 2).mean(-1)
+                rew = rew + w * (r_hat - batch["reward"][t]) ** 2
+                val = val + w * ((q1 - y[t]) ** 2 + (q2 - y[t]) ** 2)
+                zs.append(z)
         cons, rew, val = cons.mean(), rew.mean(), val.mean()
         total = (s.consistency_coef * cons + s.reward_coef * rew + s.value_coef * val) / horizon
         values = torch.stack([total, cons, rew, val, y.mean()]).detach().tolist()   # one device read, not five
@@ -92,11 +104,12 @@ class Learner:
     def policy_loss(self, zs: list[torch.Tensor]) -> torch.Tensor:
         """-min_i Q_i(z, pi(z)) on the detached latents, rho-weighted and normalized (Q frozen)."""
         loss, norm = 0.0, 0.0
-        for t, z in enumerate(zs):
-            z = z.detach()
-            q1, q2 = self.model.q(z, self.model.pi(z))
-            loss = loss + self.s.rho ** t * -torch.minimum(q1, q2).mean()
-            norm += self.s.rho ** t
+        with self.autocast():
+            for t, z in enumerate(zs):
+                z = z.detach()
+                q1, q2 = self.model.q(z, self.model.pi(z))
+                loss = loss + self.s.rho ** t * -torch.minimum(q1, q2).float().mean()
+                norm += self.s.rho ** t
         return loss / norm
 
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:

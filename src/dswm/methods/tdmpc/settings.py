@@ -76,6 +76,10 @@ class TDMPCSettings:
     """Global gradient-norm clip of each update."""
     batch: int = setting("count")
     """Sequences of H+1 observations per gradient step."""
+    matmul_dtype: Literal["float32", "bfloat16"] = setting(ENUM)
+    """The number format of the gradient step's matrix products and convolutions (:mod:`dswm.methods.matmul`'s
+    names): ``bfloat16`` runs the losses' forward under torch's autocast (float32 weights, Adam state and loss sums);
+    planning stays float32."""
     # ---- budgets
     steps: int = setting("count")
     """Gradient steps in all."""
