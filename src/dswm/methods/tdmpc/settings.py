@@ -12,6 +12,7 @@ from typing import Any, ClassVar, Literal, Mapping
 
 from dswm.config import ENUM, SECTION, ConfigError, build, check_fields, setting, with_budget
 from dswm.methods.collect import CollectSettings
+from dswm.methods.matmul import MatmulDtype
 from dswm.methods.tdmpc.planner import MPPIConfig
 
 
@@ -76,7 +77,7 @@ class TDMPCSettings:
     """Global gradient-norm clip of each update."""
     batch: int = setting("count")
     """Sequences of H+1 observations per gradient step."""
-    matmul_dtype: Literal["float32", "bfloat16"] = setting(ENUM)
+    matmul_dtype: MatmulDtype = setting(ENUM)
     """The number format of the gradient step's matrix products and convolutions (:mod:`dswm.methods.matmul`'s
     names): ``bfloat16`` runs the losses' forward under torch's autocast (float32 weights, Adam state and loss sums);
     planning stays float32."""
