@@ -188,6 +188,10 @@ def measure_item(item: str, *, tree: Path, tensor_dir: Path, profile: str, quick
 
 
 # ---- the run: items in subprocesses, both sides alternating ------------------------------------------------
+class ItemFailed(RuntimeError):
+    """One item's worker process failed; the run records it and goes on with the other items."""
+
+
 def run_side(item: str, side: str, tree: Path, args, scratch: Path) -> dict:
     """Measure ``item`` with ``tree``'s code (the ``side``'s) in a fresh one-thread process."""
     out = scratch / f"{item}-{side}.json"
@@ -198,7 +202,7 @@ def run_side(item: str, side: str, tree: Path, args, scratch: Path) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise SystemExit(f"bench_learners: {item} in {tree} failed (exit {proc.returncode}):\n{proc.stderr[-4000:]}")
+        raise ItemFailed(f"bench_learners: {item} in {tree} failed (exit {proc.returncode}):\n{proc.stderr[-4000:]}")
     result = json.loads(out.read_text())
     if not Path(result["dswm_imported_from"]).is_relative_to(tree):
         raise SystemExit(f"bench_learners: {item} imported dswm from {result['dswm_imported_from']}, expected "
@@ -224,6 +228,8 @@ def rates(result: dict) -> dict[str, float]:
 
 def compare(name: str, current: dict, baseline: dict | None) -> dict:
     entry = {"headline": HEADLINE[name], "goal_speedup": GOALS.get(name), "current": current, "baseline": baseline}
+    if "error" in current or (baseline is not None and "error" in baseline):
+        return entry
     if baseline is not None:
         cur, base = rates(current), rates(baseline)
         entry["speedups"] = {k: round(cur[k] / base[k], 3) for k in cur if k in base}
@@ -255,7 +261,13 @@ def orchestrate(args) -> dict:
             results: dict[str, dict] = {}
             for i, item in enumerate(args.items):
                 order = list(sides) if i % 2 == 0 else list(reversed(sides))
-                results[item] = {side: run_side(item, side, sides[side], args, scratch) for side in order}
+                results[item] = {}
+                for side in order:
+                    try:
+                        results[item][side] = run_side(item, side, sides[side], args, scratch)
+                    except ItemFailed as exc:   # the other items still run; the JSON names the failure
+                        print(exc, file=sys.stderr, flush=True)
+                        results[item][side] = {"error": str(exc)}
         finally:
             if args.baseline:
                 git("worktree", "remove", "--force", str(sides["baseline"]))
@@ -265,8 +277,11 @@ def orchestrate(args) -> dict:
                             for n in LEARNERS if n in results}}
     if "environment" in results:
         payload["environment"] = results["environment"]
-    if "planners" in results:
+    failed = [f"{item} ({side})" for item, by_side in results.items() for side, r in by_side.items() if "error" in r]
+    payload["failed"] = failed
+    if "planners" in results and "error" not in results["planners"]["current"]:
         cur, base = results["planners"]["current"], results["planners"].get("baseline")
+        base = None if base is not None and "error" in base else base
         p = {"current": cur, "baseline": base, "goal_dswm_over_jtoratc": DSWM_OVER_JTORATC_GOAL,
              "goal_met_dswm_over_jtoratc": cur["dswm_over_jtoratc"] <= DSWM_OVER_JTORATC_GOAL,
              "goal_speedup": PLANNER_GOAL}
@@ -305,6 +320,8 @@ def main() -> None:
 
     path = write_to(args.out or HERE / "results" / "learners_cpu_t1.json", payload)
     print(f"wrote {path}")
+    if payload["failed"]:
+        raise SystemExit(f"bench_learners: failed: {', '.join(payload['failed'])} (their errors are in {path})")
 
 
 if __name__ == "__main__":

@@ -132,6 +132,9 @@ def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
     assert ppo["same_settings"] is False
     alone = bench_learners.compare("maddpg", cur, None)
     assert "speedup" not in alone and alone["baseline"] is None
+    failed = bench_learners.compare("sac", cur, {"error": "bench_learners: sac in /b failed (exit 1)"})
+    assert "speedup" not in failed and failed["baseline"]["error"].startswith("bench_learners: sac in /b failed")
+    assert failed["current"] is cur
 
 
 @pytest.mark.integration
