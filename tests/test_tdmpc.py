@@ -189,6 +189,23 @@ def test_losses_encode_the_next_observations_once_for_the_consistency_and_td_tar
     assert m["consistency"] == pytest.approx(float(cons), rel=1e-5)
 
 
+def test_the_replays_scaled_maps_give_the_raw_windows_losses_bit_for_bit(scn, replay):
+    # sample_windows(scaled=True) reads the maps scaled once per buffer; the same draws, and a loss equal to the one
+    # of the raw windows in every bit (the encoder then skips its own log1p, which gives the same floats).
+    lrn = learner_for(scn)
+    raw = replay.sample_windows(16, 3, torch.Generator().manual_seed(5))
+    scaled = replay.sample_windows(16, 3, torch.Generator().manual_seed(5), scaled=True)
+    assert "demand" not in scaled and set(scaled) - {"scaled_demand"} == set(raw) - {"demand"}
+    assert torch.equal(scaled["scaled_demand"], torch.log1p(raw["demand"].clamp_min(0.0)))
+    assert float(raw["demand"].max()) > 0.5            # log1p is not the identity on these maps
+    for k in set(raw) - {"demand"}:
+        assert torch.equal(scaled[k], raw[k]), k
+    total_raw, zs_raw, m_raw = lrn.losses(raw)
+    total_scaled, zs_scaled, m_scaled = lrn.losses(scaled)
+    assert torch.equal(total_raw, total_scaled) and m_raw == m_scaled
+    assert all(torch.equal(a, b) for a, b in zip(zs_raw, zs_scaled))
+
+
 # ----------------------------------------------------------------------------------- learning
 
 def test_gradient_steps_lower_the_told_loss_on_a_fixed_batch(scn, replay):

@@ -76,17 +76,21 @@ class Learner:
         return reward + self.s.gamma * (~terminated).to(reward.dtype) * torch.minimum(q1, q2).float()
 
     def losses(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor], dict[str, float]]:
-        """The TOLD loss of one batch (``TransitionReplay.sample_windows``), the rolled-out latents and metrics.
+        """The TOLD loss of one batch (``TransitionReplay.sample_windows``, its maps as ``demand`` or, scaled, as
+        ``scaled_demand``), the rolled-out latents and metrics.
 
         Returns:
             (TOLD loss (scalar, divided by H), [z_0..z_H] each (B, latent), {metric: value}).
         """
         s, horizon = self.s, batch["action"].shape[0]
+        scaled = "scaled_demand" in batch     # the replay's maps, scaled once (``sample_windows(scaled=True)``)
+        demand = batch["scaled_demand" if scaled else "demand"]
         with self.autocast():     # .float(): each output in float32 (the same tensor when it is one already)
             with torch.no_grad():     # h'(o_1..o_H), once: the consistency targets and the TD targets' z'
-                z_target = self.target.encode(batch["demand"][1:], batch["fleet"][1:], batch["time"][1:]).float()
+                z_target = self.target.encode(demand[1:], batch["fleet"][1:], batch["time"][1:],
+                                              scaled=scaled).float()
             y = self.bootstrap(z_target, batch["reward"], batch["terminated"])    # z_target: (H, B, latent)
-            z = self.model.encode(batch["demand"][0], batch["fleet"][0], batch["time"][0]).float()
+            z = self.model.encode(demand[0], batch["fleet"][0], batch["time"][0], scaled=scaled).float()
             zs, cons, rew, val = [z], 0.0, 0.0, 0.0
             for t in range(horizon):
                 w = s.rho ** t
@@ -136,7 +140,7 @@ class Learner:
 
     def train_step(self, replay) -> dict[str, float]:
         """Sample a batch from ``replay`` (``TransitionReplay``) and :meth:`update` on it."""
-        return self.update(replay.sample_windows(self.s.batch, self.s.horizon, self.generator))
+        return self.update(replay.sample_windows(self.s.batch, self.s.horizon, self.generator, scaled=True))
 
     def state_dict(self) -> dict:
         """Weights (online and target), optimizers, the sampler's generator and the step."""

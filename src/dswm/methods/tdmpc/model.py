@@ -32,6 +32,11 @@ def q_head(inp: int, hidden: int) -> nn.Sequential:
                          nn.ELU(), nn.Linear(hidden, 1))
 
 
+def scale_demand(demand: torch.Tensor) -> torch.Tensor:
+    """The encoder's fixed scaling of the normalized maps: log(1 + max(x, 0))."""
+    return torch.log1p(demand.clamp_min(0.0))
+
+
 def fleet_map(fleet: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
     """Where the active UAVs are, on the grid: sum over active UAVs of exp(-d^2 / 2), d in cells.
 
@@ -61,11 +66,23 @@ class Encoder(nn.Module):
         conv_out = 2 * c * ((rows + 3) // 4) * ((cols + 3) // 4)
         self.head = mlp(conv_out + n_uavs * len(FLEET_FEATURES) + 2, hidden, latent)
 
-    def forward(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """Args: demand (N, w+1, R, C) normalized maps, fleet (N, K, 7), time (N, 2).  Returns: z (N, latent)."""
-        img = torch.cat([torch.log1p(demand.clamp_min(0.0)), fleet_map(fleet, self.rows, self.cols).unsqueeze(1)], 1)
-        img = img.contiguous(memory_format=torch.channels_last)   # oneDNN's faster layout for these convs on CPU
-        return self.head(torch.cat([self.conv(img), fleet.flatten(1), time], -1))
+    def forward(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor, *,
+                scaled: bool = False) -> torch.Tensor:
+        """Args: demand (N, w+1, R, C) normalized maps (``scaled``: their :func:`scale_demand` already), fleet
+        (N, K, 7), time (N, 2).  Returns: z (N, latent)."""
+        return self.head(torch.cat([self.conv(self.image(demand, fleet, scaled)), fleet.flatten(1), time], -1))
+
+    def image(self, demand: torch.Tensor, fleet: torch.Tensor, scaled: bool) -> torch.Tensor:
+        """The convs' input (N, w+2, R, C): [log1p(demand), fleet map], each written into its channels of one
+        buffer (the values of their concatenation without its copy)."""
+        n, m = demand.shape[:2]
+        img = torch.empty((n, m + 1, self.rows, self.cols), dtype=demand.dtype, device=demand.device)
+        if scaled:
+            img[:, :m] = demand
+        else:
+            torch.log1p(demand.clamp_min(0.0), out=img[:, :m])      # scale_demand, written in place
+        img[:, m] = fleet_map(fleet, self.rows, self.cols)
+        return img
 
 
 class TOLD(nn.Module):
@@ -89,11 +106,13 @@ class TOLD(nn.Module):
             nn.init.zeros_(head[-1].weight)
             nn.init.zeros_(head[-1].bias)
 
-    def encode(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """h: observations with any leading shape (...) -> z (..., latent)."""
+    def encode(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor, *,
+               scaled: bool = False) -> torch.Tensor:
+        """h: observations with any leading shape (...) -> z (..., latent); ``scaled``: the maps are
+        :func:`scale_demand` of the normalized ones (the replay's, transformed once per buffer)."""
         lead = fleet.shape[:-2]
         z = self.encoder(demand.reshape(-1, *demand.shape[-3:]), fleet.reshape(-1, *fleet.shape[-2:]),
-                         time.reshape(-1, 2))
+                         time.reshape(-1, 2), scaled=scaled)
         return z.reshape(*lead, self.latent)
 
     def next(self, z: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from dswm.methods.replay import SequenceReplay
+from dswm.methods.tdmpc.model import scale_demand
 from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.energy import hover_power
 from dswm.sim.fleet import fleet_step
@@ -50,6 +51,7 @@ class TransitionReplay(SequenceReplay):
         self.terminated: list[torch.Tensor] = []   # (T,) bool
         self.own: list[bool] = []                  # False: the pre-collection; True: TD-MPC's own episode
         self._stacked = None
+        self._scaled = None                        # scale_demand of every map, computed on first use
 
     @classmethod
     def from_precollected(cls, replay: SequenceReplay, *, grid, scenario) -> "TransitionReplay":
@@ -88,12 +90,23 @@ class TransitionReplay(SequenceReplay):
                              torch.stack(self.terminated), torch.as_tensor(self.rows))
         return self._stacked
 
-    def sample_windows(self, batch: int, horizon: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    def scaled_maps(self) -> torch.Tensor:
+        """(D, S, R, C) the encoder's scaling of every stored map (``model.scale_demand``), computed once: a window
+        then reads its maps transformed instead of transforming w+1 maps per observation per batch."""
+        if self._scaled is None:
+            self._scaled = scale_demand(self.demand)
+        return self._scaled
+
+    def sample_windows(self, batch: int, horizon: int, generator: torch.Generator, *,
+                       scaled: bool = False) -> dict[str, torch.Tensor]:
         """``batch`` windows of H+1 consecutive observations of one day (H = ``horizon``), uniformly.
 
+        Args:
+            scaled: give the windows' maps as ``scaled_demand``, read from :meth:`scaled_maps` (the same values
+                as the encoder's scaling of ``demand``), in place of ``demand``.
         Returns:
-            dict with ``demand`` (H+1, B, w+1, R, C), ``fleet`` (H+1, B, K, 7), ``time`` (H+1, B, 2), ``action``
-            (H, B, 3K), ``reward`` (H, B), ``terminated`` (H, B) bool.
+            dict with ``demand`` (H+1, B, w+1, R, C) (or ``scaled_demand``), ``fleet`` (H+1, B, K, 7), ``time``
+            (H+1, B, 2), ``action`` (H, B, 3K), ``reward`` (H, B), ``terminated`` (H, B) bool.
         """
         if not self.rows:
             raise ValueError("TransitionReplay.sample_windows: the buffer is empty")
@@ -106,7 +119,9 @@ class TransitionReplay(SequenceReplay):
         slot = start.unsqueeze(0) + torch.arange(horizon + 1).unsqueeze(1)          # (H+1, B)
         ep = eps.unsqueeze(0).expand_as(slot)
         row = rows[eps].unsqueeze(0).expand_as(slot)
-        return {"demand": self.window_maps(row, slot), "fleet": fleet[ep, slot], "time": self.time_features(slot),
+        maps = {"scaled_demand": self.window_maps(row, slot, self.scaled_maps())} if scaled else \
+            {"demand": self.window_maps(row, slot)}
+        return {**maps, "fleet": fleet[ep, slot], "time": self.time_features(slot),
                 "action": actions[ep[:-1], slot[:-1]].flatten(-2), "reward": rewards[ep[:-1], slot[:-1]],
                 "terminated": term[ep[:-1], slot[:-1]]}
 
