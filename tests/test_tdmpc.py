@@ -200,6 +200,11 @@ def test_the_replays_scaled_maps_give_the_raw_windows_losses_bit_for_bit(scn, re
     assert float(raw["demand"].max()) > 0.5            # log1p is not the identity on these maps
     for k in set(raw) - {"demand"}:
         assert torch.equal(scaled[k], raw[k]), k
+    # the strips pad the day's first windows with its first map, as window_maps does
+    row, start = torch.tensor([replay.rows[0]] * 3), torch.tensor([0, 1, 5])
+    slot = start.unsqueeze(0) + torch.arange(3).unsqueeze(1)
+    assert torch.equal(replay.scaled_windows(row, start, 3),
+                       torch.log1p(replay.window_maps(row.expand(3, 3), slot).clamp_min(0.0)))
     total_raw, zs_raw, m_raw = lrn.losses(raw)
     total_scaled, zs_scaled, m_scaled = lrn.losses(scaled)
     assert torch.equal(total_raw, total_scaled) and m_raw == m_scaled

@@ -62,11 +62,18 @@ class SequenceReplay:
         self.actions.append(torch.as_tensor(np.asarray(actions, dtype=np.float32)))
         self.next_sr.append(torch.as_tensor(np.asarray(next_sr, dtype=np.float32)))
 
-    def window_maps(self, row: torch.Tensor, slot: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
-        """Observation windows x_{t-w..t} (edge-padded at the day's start): row, slot (...) -> (..., w+1, R, C);
-        read from ``maps`` (a transform of ``demand``, same shape) in place of the demand when given."""
+    def window_maps(self, row: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+        """Observation windows x_{t-w..t} (edge-padded at the day's start): row, slot (...) -> (..., w+1, R, C)."""
         offs = torch.arange(-self.window, 1)
         idx = (slot.unsqueeze(-1) + offs).clamp_min(0)                   # (..., w+1)
+        return self.demand[row.unsqueeze(-1).expand_as(idx), idx]
+
+    def strip_maps(self, row: torch.Tensor, start: torch.Tensor, length: int,
+                   maps: torch.Tensor | None = None) -> torch.Tensor:
+        """The maps x_{s-w..s+length-1} that the windows of slots s..s+length-1 read, edge-padded as
+        ``window_maps`` pads: row, start (B,) -> (B, length + w, R, C); window t of sequence b is
+        ``strip[b, t:t + w + 1]``. Read from ``maps`` (a transform of ``demand``) when given."""
+        idx = (start.unsqueeze(-1) + torch.arange(-self.window, length)).clamp_min(0)   # (B, length + w)
         return (self.demand if maps is None else maps)[row.unsqueeze(-1).expand_as(idx), idx]
 
     def time_features(self, slot: torch.Tensor) -> torch.Tensor:

@@ -70,18 +70,25 @@ class Encoder(nn.Module):
                 scaled: bool = False) -> torch.Tensor:
         """Args: demand (N, w+1, R, C) normalized maps (``scaled``: their :func:`scale_demand` already), fleet
         (N, K, 7), time (N, 2).  Returns: z (N, latent)."""
-        return self.head(torch.cat([self.conv(self.image(demand, fleet, scaled)), fleet.flatten(1), time], -1))
+        return self.from_image(self.image(demand, fleet, scaled), fleet, time)
+
+    def from_image(self, img: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """z (N, latent) from the convs' input (N, w+2, R, C) (:meth:`image`), fleet (N, K, 7) and time (N, 2)."""
+        return self.head(torch.cat([self.conv(img), fleet.flatten(1), time], -1))
 
     def image(self, demand: torch.Tensor, fleet: torch.Tensor, scaled: bool) -> torch.Tensor:
-        """The convs' input (N, w+2, R, C): [log1p(demand), fleet map], each written into its channels of one
-        buffer (the values of their concatenation without its copy)."""
-        n, m = demand.shape[:2]
-        img = torch.empty((n, m + 1, self.rows, self.cols), dtype=demand.dtype, device=demand.device)
+        """The convs' input [log1p(demand), fleet map] (..., w+2, R, C) of maps (..., w+1, R, C) and fleets
+        (..., K, 7) of any leading shape, each written into its channels of one contiguous buffer: the values of
+        their concatenation, without its copy, and maps given as a strided view (the replay's overlapping
+        windows) are read in the same pass."""
+        lead, m = demand.shape[:-3], demand.shape[-3]
+        img = torch.empty((*lead, m + 1, self.rows, self.cols), dtype=demand.dtype, device=demand.device)
         if scaled:
-            img[:, :m] = demand
+            img[..., :m, :, :] = demand
         else:
-            torch.log1p(demand.clamp_min(0.0), out=img[:, :m])      # scale_demand, written in place
-        img[:, m] = fleet_map(fleet, self.rows, self.cols)
+            torch.log1p(demand.clamp_min(0.0), out=img[..., :m, :, :])      # scale_demand, written in place
+        flat = fleet.reshape(-1, *fleet.shape[-2:])
+        img[..., m, :, :] = fleet_map(flat, self.rows, self.cols).view(*lead, self.rows, self.cols)
         return img
 
 
@@ -111,8 +118,9 @@ class TOLD(nn.Module):
         """h: observations with any leading shape (...) -> z (..., latent); ``scaled``: the maps are
         :func:`scale_demand` of the normalized ones (the replay's, transformed once per buffer)."""
         lead = fleet.shape[:-2]
-        z = self.encoder(demand.reshape(-1, *demand.shape[-3:]), fleet.reshape(-1, *fleet.shape[-2:]),
-                         time.reshape(-1, 2), scaled=scaled)
+        img = self.encoder.image(demand, fleet, scaled)
+        z = self.encoder.from_image(img.view(-1, *img.shape[-3:]), fleet.reshape(-1, *fleet.shape[-2:]),
+                                    time.reshape(-1, 2))
         return z.reshape(*lead, self.latent)
 
     def next(self, z: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

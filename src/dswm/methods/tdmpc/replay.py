@@ -97,13 +97,23 @@ class TransitionReplay(SequenceReplay):
             self._scaled = scale_demand(self.demand)
         return self._scaled
 
+    def scaled_windows(self, row: torch.Tensor, start: torch.Tensor, length: int) -> torch.Tensor:
+        """The windows of slots start..start+length-1 of each of B sequences, from :meth:`scaled_maps`, as a view
+        (length, B, w+1, R, C) of one strip of the maps x_{s-w..s+length-1} per sequence (edge-padded as
+        ``window_maps`` pads): the same values as ``window_maps`` with w+1 times fewer maps read."""
+        strip = self.strip_maps(row, start, length, self.scaled_maps())             # (B, length + w, R, C)
+        b, _, r, c = strip.shape
+        st = strip.stride()
+        return strip.as_strided((length, b, self.window + 1, r, c), (st[1], st[0], st[1], st[2], st[3]))
+
     def sample_windows(self, batch: int, horizon: int, generator: torch.Generator, *,
                        scaled: bool = False) -> dict[str, torch.Tensor]:
         """``batch`` windows of H+1 consecutive observations of one day (H = ``horizon``), uniformly.
 
         Args:
-            scaled: give the windows' maps as ``scaled_demand``, read from :meth:`scaled_maps` (the same values
-                as the encoder's scaling of ``demand``), in place of ``demand``.
+            scaled: give the windows' maps as ``scaled_demand``, a view into strips of :meth:`scaled_maps` (the
+                same values as the encoder's scaling of ``demand``; :meth:`scaled_windows`), in place of
+                ``demand``.
         Returns:
             dict with ``demand`` (H+1, B, w+1, R, C) (or ``scaled_demand``), ``fleet`` (H+1, B, K, 7), ``time``
             (H+1, B, 2), ``action`` (H, B, 3K), ``reward`` (H, B), ``terminated`` (H, B) bool.
@@ -119,7 +129,7 @@ class TransitionReplay(SequenceReplay):
         slot = start.unsqueeze(0) + torch.arange(horizon + 1).unsqueeze(1)          # (H+1, B)
         ep = eps.unsqueeze(0).expand_as(slot)
         row = rows[eps].unsqueeze(0).expand_as(slot)
-        maps = {"scaled_demand": self.window_maps(row, slot, self.scaled_maps())} if scaled else \
+        maps = {"scaled_demand": self.scaled_windows(rows[eps], start, horizon + 1)} if scaled else \
             {"demand": self.window_maps(row, slot)}
         return {**maps, "fleet": fleet[ep, slot], "time": self.time_features(slot),
                 "action": actions[ep[:-1], slot[:-1]].flatten(-2), "reward": rewards[ep[:-1], slot[:-1]],
