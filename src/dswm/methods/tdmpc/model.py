@@ -32,9 +32,9 @@ def q_head(inp: int, hidden: int) -> nn.Sequential:
                          nn.ELU(), nn.Linear(hidden, 1))
 
 
-def scale_demand(demand: torch.Tensor) -> torch.Tensor:
-    """The encoder's fixed scaling of the normalized maps: log(1 + max(x, 0))."""
-    return torch.log1p(demand.clamp_min(0.0))
+def scale_demand(demand: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """The encoder's fixed scaling of the normalized maps: log(1 + max(x, 0)), written into ``out`` when given."""
+    return torch.log1p(demand.clamp_min(0.0), out=out)
 
 
 def fleet_map(fleet: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
@@ -86,7 +86,7 @@ class Encoder(nn.Module):
         if scaled:
             img[..., :m, :, :] = demand
         else:
-            torch.log1p(demand.clamp_min(0.0), out=img[..., :m, :, :])      # scale_demand, written in place
+            scale_demand(demand, out=img[..., :m, :, :])
         flat = fleet.reshape(-1, *fleet.shape[-2:])
         img[..., m, :, :] = fleet_map(flat, self.rows, self.cols).view(*lead, self.rows, self.cols)
         return img
