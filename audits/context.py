@@ -50,12 +50,15 @@ class AuditContext:
         read_probes: whether the sample-efficiency probe's files are part of this audit. The workflow's main
             report (the tables' gate) leaves them out, so its inputs are the tables' sources alone; the probe
             report (`audit_probes`, run by `figures`) reads them.
+        read_learning: whether the learning runs under results/learning/ are part of this audit (the learning
+            report, `audit_learning`, run by `learning`, reads them; the tables' report does not).
     """
 
     def __init__(self, *, root: Path | str, settings: Settings, ledger: ReadLedger | None = None,
-                 read_probes: bool = True):
+                 read_probes: bool = True, read_learning: bool = True):
         self.root = Path(root).resolve()
         self.read_probes = read_probes
+        self.read_learning = read_learning
         self.settings = settings
         self.profile = settings.profile
         self.datasets = list(settings.run.datasets)

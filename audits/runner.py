@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from audits import bounds, crop, derived, probes, protocol, splits, sql, statistics, training
+from audits import bounds, crop, derived, learning, probes, protocol, splits, sql, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -46,18 +46,22 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     training.check_checkpoints,
     training.check_evaluated_models,
     probes.check_probes_out_of_tables,
+    learning.check_learning_days,
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 
-SCOPES: dict[str, tuple[list[Callable[[AuditContext], Check]], bool]] = {
-    "all": (CHECKS, True),
-    "tables": (CHECKS, False),
-    "probes": ([probes.check_probes_out_of_tables], True),
+SCOPES: dict[str, tuple[list[Callable[[AuditContext], Check]], bool, bool]] = {
+    "all": (CHECKS, True, True),
+    "tables": (CHECKS, False, False),
+    "probes": ([probes.check_probes_out_of_tables], True, False),
+    "learning": ([learning.check_learning_days], False, True),
 }
-"""Audit scope -> (its checks, whether it reads the probe files). `all`: the whole audit in one report (`python -m
-audits`). The workflow splits it in two reports so that each rests on the files of its own target: `tables` (the
-`audit_report` rule, the tables' gate) runs every check over the tables' sources without the probe files, and
-`probes` (the `audit_probes` rule, which `figures` runs) compares the probe files with the tables' sources."""
+"""Audit scope -> (its checks, whether it reads the probe files, whether it reads the learning runs). `all`: the
+whole audit in one report (`python -m audits`). The workflow splits it in three reports so that each rests on the
+files of its own target: `tables` (the `audit_report` rule, the tables' gate) runs every check over the tables'
+sources without the probe files or the learning runs, `probes` (the `audit_probes` rule, which `figures` runs)
+compares the probe files with the tables' sources, and `learning` (the `audit_learning` rule, which `learning` runs)
+checks the days of the learning runs under results/learning/."""
 
 
 def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
@@ -65,7 +69,8 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     name = fn.__name__.removeprefix("check_")
     family = fn.__module__.split(".")[-1]
     family = {"derived": "statistics", "crop": "statistics", "sql": "statistics", "training": "protocol",
-              "probes": "protocol", "bounds": "protocol"}.get(family, family)
+              "probes": "protocol", "bounds": "protocol",
+              "learning": "protocol"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback
@@ -92,13 +97,14 @@ def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] |
 
     if scope not in SCOPES:
         raise ValueError(f"audit scope {scope!r}: expected one of {', '.join(SCOPES)}")
-    checks_of_scope, read_probes = SCOPES[scope]
+    checks_of_scope, read_probes, read_learning = SCOPES[scope]
     torch.set_num_threads(settings.evaluation.torch_threads)  # as every evaluation job
     root = Path(root).resolve()
     ledger = ReadLedger(root=root, guarded=[root])
     for p in extra_reads or []:
         ledger.track(p)
-    ctx = AuditContext(root=root, settings=settings, ledger=ledger, read_probes=read_probes)
+    ctx = AuditContext(root=root, settings=settings, ledger=ledger, read_probes=read_probes,
+                       read_learning=read_learning)
     checks = []
     with ledger.guard():
         for fn in checks_of_scope:

@@ -74,36 +74,54 @@ def check_training_days(ctx: AuditContext) -> Check:
     for (ds, method, seed), users in training_jobs(ctx).items():
         try:
             path, man = _manifest(ctx, ds, method, seed)
-            labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
             train = set(ctx.train_index(ds).tolist())
+            days = manifest_days(chk, ctx, ds, man, where=ctx.rel(path), method=method)
         except AuditInputError as exc:
             chk.fail(str(exc))
             continue
-        where = ctx.rel(path)
-        days = man.get("days")
-        if not isinstance(days, list) or not days:
-            chk.fail(f"{where}: 'days' is {days!r}; expected the tensor day of every transition or sequence used")
+        if days is None:
             continue
-        days = [int(d) for d in days]
-        leaked = sorted(set(d for d in days if d not in train))
-        if leaked:
-            chk.fail(f"{where}: training data holds day(s) {[labels.get(d, d) for d in leaked]} (indices {leaked}) "
-                     f"that are not training days — the replay/pre-collected data of {method} holds "
-                     f"{'a test day' if all(d in labels for d in leaked) else 'unknown days'}")
-        if "day_labels" in man and [labels.get(d) for d in days] != list(man["day_labels"]):
-            chk.fail(f"{where}: day_labels disagree with the labels meta.json gives the recorded day indices")
-        per = man.get("transitions_per_day_episode")
         n = man.get("n_transitions")
-        if per is not None and n is not None and int(n) != int(per) * len(days):
-            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} recorded day episodes x {per} = "
-                     f"{int(per) * len(days)} — some transitions have no recorded day")
-        if per is None and n is not None and int(n) != len(days):
-            chk.fail(f"{where}: n_transitions = {n}, but {len(days)} days are recorded (one per transition "
-                     f"expected)")
         chk.evidence[f"{ds}/{method}/seed{seed}"] = {"records": len(days), "distinct_days": len(set(days)),
                                                      "training_days_covered": f"{len(set(days) & train)}/{len(train)}",
                                                      "n_transitions": n, "evaluated_by": users}
     return chk
+
+
+def manifest_days(chk: Check, ctx: AuditContext, ds: str, man: dict, *, where: str, method: str) -> list[int] | None:
+    """The tensor days a training manifest records (its ``days``), each checked to be a training day, with its
+    ``day_labels`` and transition count checked against them; None (a finding recorded) when it records none.
+
+    Args:
+        chk: the check that records the findings; ctx: the audit's context (its settings say which days train);
+        ds: the manifest's dataset; man: the manifest; where: its path as the findings name it; method: the method
+        it trained.
+    Raises:
+        AuditInputError: meta.json of ``ds`` cannot be read.
+    """
+    labels = {d["index"]: d["label"] for d in ctx.meta(ds)["days"]}
+    train = set(ctx.train_index(ds).tolist())
+    days = man.get("days")
+    if not isinstance(days, list) or not days:
+        chk.fail(f"{where}: 'days' is {days!r}; expected the tensor day of every transition or sequence used")
+        return None
+    days = [int(d) for d in days]
+    leaked = sorted(set(d for d in days if d not in train))
+    if leaked:
+        chk.fail(f"{where}: training data holds day(s) {[labels.get(d, d) for d in leaked]} (indices {leaked}) "
+                 f"that are not training days — the replay/pre-collected data of {method} holds "
+                 f"{'a test day' if all(d in labels for d in leaked) else 'unknown days'}")
+    if "day_labels" in man and [labels.get(d) for d in days] != list(man["day_labels"]):
+        chk.fail(f"{where}: day_labels disagree with the labels meta.json gives the recorded day indices")
+    per = man.get("transitions_per_day_episode")
+    n = man.get("n_transitions")
+    if per is not None and n is not None and int(n) != int(per) * len(days):
+        chk.fail(f"{where}: n_transitions = {n}, but {len(days)} recorded day episodes x {per} = "
+                 f"{int(per) * len(days)} — some transitions have no recorded day")
+    if per is None and n is not None and int(n) != len(days):
+        chk.fail(f"{where}: n_transitions = {n}, but {len(days)} days are recorded (one per transition "
+                 f"expected)")
+    return days
 
 
 def _parse_utc(text: str) -> float:

@@ -260,9 +260,9 @@ def test_the_figures_target_fails_on_a_probe_report_that_no_longer_vouches_for_t
                  md_path=root / "results/audit/probes.md")
 
     def figures_check() -> SystemExit | None:
-        return run_script("figures_check.py", SimpleNamespace(
+        return run_script("target_gate.py", SimpleNamespace(
             log=[str(root / "logs" / "figures_check.log")], input=SimpleNamespace(report=probes),
-            params=SimpleNamespace(audit=param(report_identity(settings)))))
+            params=SimpleNamespace(audit=param(report_identity(settings)), target="figures")))
 
     assert figures_check() is None
     before = sha(root / DAYS)

@@ -4,6 +4,7 @@ snapshot; the CSV's table; and the target itself on the smoke profile (marked in
 from __future__ import annotations
 
 import copy
+import json
 import re
 from pathlib import Path
 from types import SimpleNamespace
@@ -278,6 +279,15 @@ def test_the_learning_target_writes_a_curve_per_learner_on_the_validation_days(l
     for r in verdict.iter_rows(named=True):  # its served-ratio gain is the curve's, cap against untrained
         rows = table.filter(pl.col("method") == r["method"]).sort("fraction")["probe_sr"]
         assert r["sr_gain"] == pytest.approx(rows[-1] - rows[0]) and r["untrained_sr"] == pytest.approx(rows[0])
+    # the learning audit the target needs read every run and passed: each learner's curve on its validation days
+    report = json.loads((learning_run / "results" / "audit" / "learning.json").read_text())
+    (chk,) = [c for c in report["checks"] if c["id"] == "protocol.learning_days"]
+    assert report["passed"] and report["scope"] == "learning"
+    runs = chk["evidence"]["runs"]
+    assert sorted(runs) == sorted(f"milan/{m}/seed0" for m in [*learners, *S.learning_references(settings, learning)])
+    for method in learners:
+        assert runs[f"milan/{method}/seed0"]["validation_days"] == want_days.split(";"), method
+        assert runs[f"milan/{method}/seed0"]["snapshots_hashed"] == len(learning.ladder) + 1, method
 
 
 @pytest.mark.integration

@@ -13,6 +13,8 @@ AUDIT_IDENTITY = report_identity(SETTINGS)
 """{"profile", "config_hash"} a report of the audit under the current settings carries (the tables gate's check)."""
 PROBE_AUDIT = {"json": "results/audit/probes.json", "md": "results/audit/probes.md"}
 """The report of the probe part of the audit (the `audit_probes` rule's outputs, rewritten by `audit`)."""
+LEARNING_AUDIT = {"json": "results/audit/learning.json", "md": "results/audit/learning.md"}
+"""The report of the learning part of the audit (the `audit_learning` rule's outputs, rewritten by `audit`)."""
 AUDIT_INPUTS = dict(
     raw=[p for d in DATASETS for p in raw_files(d)],
     tensors=expand(rules.prepare.output.tensor, dataset=DATASETS),
@@ -58,13 +60,16 @@ rule audit_report:
 # No output: Snakemake runs a targeted rule without output on every call (`snakemake audit` runs this one job and
 # nothing else on a finished tree), first regenerating any of its inputs that is missing. It runs the whole audit
 # itself (its inputs are what the audit reads, not the reports, so the audit runs once): the tables' part, rewriting
-# results/audit/report.{json,md}, and, where the sample-efficiency probe's files exist (after `figures`), the probe
-# part, rewriting results/audit/probes.{json,md}.
+# results/audit/report.{json,md}; where the sample-efficiency probe's files exist (after `figures`), the probe
+# part, rewriting results/audit/probes.{json,md}; and where learning runs exist (after `learning`), the learning
+# part, rewriting results/audit/learning.{json,md}.
 rule audit:
     input:
         **AUDIT_INPUTS,
         # optional as the calibration record: the probe files present (workflow/rules/probes.smk)
         probes=lambda wildcards: [p for p in probe_files() if Path(p).exists()],
+        # ... and the learning runs' files present (workflow/rules/learning.smk)
+        learning=lambda wildcards: [p for p in learning_audit_files() if Path(p).exists()],
     params:
         settings=AUDIT_SETTINGS,
         configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
@@ -72,6 +77,8 @@ rule audit:
         md=rules.audit_report.output.md,
         probes_json=PROBE_AUDIT["json"],
         probes_md=PROBE_AUDIT["md"],
+        learning_json=LEARNING_AUDIT["json"],
+        learning_md=LEARNING_AUDIT["md"],
     log:
         "logs/audit/audit.log",
     threads: 1

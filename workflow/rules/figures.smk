@@ -93,10 +93,11 @@ rule figures:
         **AUDIT_INPUTS,
     params:
         audit=S.param(AUDIT_IDENTITY),
+        target="figures",
     log:
         "logs/figures_check.log",
     threads: 1
     resources:
         **job_resources("figures"),
     script:
-        "../scripts/figures_check.py"
+        "../scripts/target_gate.py"

@@ -104,7 +104,51 @@ rule figure_learning_curves:
         "../scripts/figure_learning_curves.py"
 
 
-# The target: the learning curves (not part of `tables` or `figures`).
+def learning_audit_files():
+    """Every file the learning audit reads that a rule writes: the runs' manifests and snapshots, and every curve."""
+    return (learning_files(rules.learning_train.output.manifest, LEARNERS)
+            + learning_files(rules.learning_train.output.snapshots, LEARNERS)
+            + learning_files(rules.learning_score.output.curve, LEARNERS + LEARNING_REFERENCES))
+
+
+# The learning part of the leakage audit (audits.runner.SCOPES["learning"]: protocol.learning_days over the runs under
+# results/learning/), its own report whatever the verdict; the `learning` target passes only when it passed.
+rule audit_learning:
+    input:
+        learning_audit_files(),
+        meta=rules.prepare.output.meta.format(dataset=LEARNING.dataset),
+    output:
+        json=LEARNING_AUDIT["json"],
+        md=report(LEARNING_AUDIT["md"], caption="../report/audit_learning.rst", category="Leakage audit",
+                  labels={"report": "learning audit"}),
+    params:
+        settings=AUDIT_SETTINGS,
+        configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
+        scope="learning",
+    log:
+        "logs/audit/learning.log",
+    threads: 1
+    resources:
+        **job_resources("audit_learning"),
+    script:
+        "../scripts/audit.py"
+
+
+# The target: the learning curves (not part of `tables` or `figures`), and the learning audit; the call fails unless
+# that report passed and vouches for the learning runs' files as they are now. A target without output: on a finished
+# tree its own check is the one job it runs.
 rule learning:
     input:
         rules.figure_learning_curves.output,
+        report=rules.audit_learning.output.json,
+        runs=learning_audit_files(),
+    params:
+        audit=S.param(AUDIT_IDENTITY),
+        target="learning",
+    log:
+        "logs/learning_check.log",
+    threads: 1
+    resources:
+        **job_resources("learning"),
+    script:
+        "../scripts/target_gate.py"
