@@ -327,6 +327,25 @@ def test_actions_are_in_range_and_no_uav_moves_more_than_d_max(method, small, fi
 
 
 @pytest.mark.parametrize("method", ["ppo", "sac"])
+def test_the_evaluation_acts_with_the_policys_mean_and_sampling_is_the_diagnostics_choice(method, small, fitted):
+    """act_batch is the policy's mean (what every evaluation scores); with ``deterministic`` False it samples the
+    policy as training does: around that mean, by the policy's std (SAC squashes its sample, PPO clips it)."""
+    ctl = fitted[method][0]
+    mean, _ = run_actions(ctl, small, [0, 1], 1)
+    again, _ = run_actions(ctl, small, [0, 1], 1)
+    assert np.array_equal(mean, again)
+    ctl.deterministic = False
+    try:
+        draws = np.stack([run_actions(ctl, small, [0, 1], 1)[0] for _ in range(20)])
+    finally:
+        ctl.deterministic = True
+    spread = draws.std(0)
+    assert spread.min() > 0.01  # every coordinate varies between draws
+    assert np.abs(draws.mean(0) - mean).mean() < spread.mean()  # centred near the mean action
+    assert np.array_equal(run_actions(ctl, small, [0, 1], 1)[0], mean)
+
+
+@pytest.mark.parametrize("method", ["ppo", "sac"])
 def test_manifest_lists_exactly_the_training_days_of_the_episodes_used(method, fitted):
     _, man, run_dir = fitted[method]
     draws = np.random.default_rng(0)

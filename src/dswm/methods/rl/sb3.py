@@ -124,6 +124,9 @@ class SB3Controller(Controller):
         super().__init__(name=name, seed=seed, device=device, options=options)
         self.model: BaseAlgorithm | None = None
         self.meta: dict | None = None
+        self.deterministic = True
+        """Act with the policy's mean (SB3's ``deterministic=True``), as every evaluation does; False samples the
+        policy's distribution as training does (``benchmarks/diagnose_sb3.py`` compares the two)."""
 
     # ---- building ----------------------------------------------------------------------------------------
     def algorithm_kwargs(self, horizon: int) -> dict:
@@ -301,9 +304,10 @@ class SB3Controller(Controller):
         self.reset_batch([ctx])
 
     def act_batch(self, obs: Mapping[str, Any]) -> np.ndarray:
-        """(B, K, 3): the policy's deterministic action on the flat observation, clipped to [-1, 1]."""
+        """(B, K, 3): the policy's action on the flat observation (its mean unless ``deterministic`` is False),
+        clipped to [-1, 1]."""
         flat = flat_observation(obs)
-        action, _ = self.model.predict(flat, deterministic=True)
+        action, _ = self.model.predict(flat, deterministic=self.deterministic)
         return np.clip(fleet_action(action, self.meta["n_uavs"]), -1.0, 1.0)
 
     def act(self, obs: Mapping[str, Any]) -> np.ndarray:
