@@ -52,13 +52,20 @@ class AuditContext:
             report (`audit_probes`, run by `figures`) reads them.
         read_learning: whether the learning runs under results/learning/ are part of this audit (the learning
             report, `audit_learning`, run by `learning`, reads them; the tables' report does not).
+        read_extra: whether the figures' extra runs under results/extra/ are part of this audit (the extra report,
+            `audit_extra`, run by `figures`, reads them; the tables' report does not).
+        extra_runs: (dataset, variant, method, seed) of every extra run the figures draw, as the workflow lists them
+            (None: derived from the settings' figures section, ``audits.extra.extra_runs``).
     """
 
     def __init__(self, *, root: Path | str, settings: Settings, ledger: ReadLedger | None = None,
-                 read_probes: bool = True, read_learning: bool = True):
+                 read_probes: bool = True, read_learning: bool = True, read_extra: bool = True,
+                 extra_runs: list | None = None):
         self.root = Path(root).resolve()
         self.read_probes = read_probes
         self.read_learning = read_learning
+        self.read_extra = read_extra
+        self.extra_runs = extra_runs
         self.settings = settings
         self.profile = settings.profile
         self.datasets = list(settings.run.datasets)

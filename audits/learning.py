@@ -102,8 +102,8 @@ def _curve(chk: Check, ctx: AuditContext, ds: str, path: Path, allowed: list[int
                      f"validation days {[labels[v] for v in allowed]} — its model may have trained on it")
     wrong = [(d, lab) for d, lab in zip(days, df["label"].to_list()) if labels.get(d) != lab]
     if wrong:
-        chk.fail(f"{where}: {len(wrong)} row(s) whose label is not meta.json's label of their day, e.g. day {wrong[0][0]} "
-                 f"labelled {wrong[0][1]!r}")
+        chk.fail(f"{where}: {len(wrong)} row(s) whose label is not meta.json's label of their day, e.g. day "
+                 f"{wrong[0][0]} labelled {wrong[0][1]!r}")
     return df
 
 

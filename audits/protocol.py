@@ -270,38 +270,54 @@ def check_result_records(ctx: AuditContext) -> Check:
         for method in ctx.methods_on(ds):
             for seed in ctx.seeds(ds):
                 run = ctx.run_dir(ds, method, seed)
-                rec_path = run / EVAL_RECORD_FILE
-                where, fix = ctx.rel(rec_path), regenerate(ctx, ds, method, seed)
-                try:
-                    rec = ctx.ledger.read_json(rec_path)
-                except FileNotFoundError:
-                    chk.fail(f"{where}: missing — the evaluate job writes it last, with the SHA-256 of "
-                             f"{' and '.join(EVAL_OUTPUTS)}; without it no result file of {ds}/{method}/seed{seed} "
-                             f"is proven unchanged since its evaluation; {fix}")
-                    continue
-                except ValueError as exc:
-                    chk.fail(f"{where}: not valid JSON ({exc}); {fix}")
-                    continue
-                files = rec.get("files") if isinstance(rec, dict) else None
-                if not isinstance(files, dict):
-                    chk.fail(f"{where}: 'files' is {files!r}; expected {{name: {{sha256, bytes}}}} of "
-                             f"{list(EVAL_OUTPUTS)}; {fix}")
-                    continue
-                ev: dict = {}
-                for name in EVAL_OUTPUTS:
-                    path = run / name
-                    entry = files.get(name)
-                    want = entry.get("sha256") if isinstance(entry, dict) else None
-                    if not isinstance(want, str) or not want:
-                        chk.fail(f"{where}: no SHA-256 recorded for {name} (files[{name!r}] = {entry!r}); {fix}")
-                        continue
-                    if not path.is_file():
-                        chk.fail(f"{ctx.rel(path)}: missing, but {where} records SHA-256 {want}; {fix}")
-                        continue
-                    found = ctx.ledger.sha256(path)
-                    if found != want:
-                        chk.fail(f"{ctx.rel(path)}: SHA-256 is {found}, {where} recorded {want} when the evaluate "
-                                 f"job wrote it — the result file changed after its evaluation; {fix}")
-                    ev[name] = {"recorded": want, "found": found}
-                chk.evidence[f"{ds}/{method}/seed{seed}"] = ev
+                ev = verify_record(chk, ctx, run, job=f"{ds}/{method}/seed{seed}",
+                                   fix=regenerate(ctx, ds, method, seed))
+                if ev is not None:
+                    chk.evidence[f"{ds}/{method}/seed{seed}"] = ev
     return chk
+
+
+def verify_record(chk: Check, ctx: AuditContext, run: Path, *, job: str, fix: str) -> dict | None:
+    """The result files of one evaluation (``run``: its directory) hash to the content record its job wrote last;
+    returns {name: {recorded, found}}, or None when the record cannot be read (a finding recorded).
+
+    Args:
+        chk: the check that records the findings; ctx: the audit's context; run: the evaluation's directory;
+        job: the evaluation as the findings name it ("dataset/method/seed<seed>"); fix: what to do, in each finding.
+    """
+    from dswm.protocol.evaluation import EVAL_OUTPUTS, EVAL_RECORD_FILE
+
+    rec_path = run / EVAL_RECORD_FILE
+    where = ctx.rel(rec_path)
+    try:
+        rec = ctx.ledger.read_json(rec_path)
+    except FileNotFoundError:
+        chk.fail(f"{where}: missing — the evaluate job writes it last, with the SHA-256 of "
+                 f"{' and '.join(EVAL_OUTPUTS)}; without it no result file of {job} "
+                 f"is proven unchanged since its evaluation; {fix}")
+        return None
+    except ValueError as exc:
+        chk.fail(f"{where}: not valid JSON ({exc}); {fix}")
+        return None
+    files = rec.get("files") if isinstance(rec, dict) else None
+    if not isinstance(files, dict):
+        chk.fail(f"{where}: 'files' is {files!r}; expected {{name: {{sha256, bytes}}}} of "
+                 f"{list(EVAL_OUTPUTS)}; {fix}")
+        return None
+    ev: dict = {}
+    for name in EVAL_OUTPUTS:
+        path = run / name
+        entry = files.get(name)
+        want = entry.get("sha256") if isinstance(entry, dict) else None
+        if not isinstance(want, str) or not want:
+            chk.fail(f"{where}: no SHA-256 recorded for {name} (files[{name!r}] = {entry!r}); {fix}")
+            continue
+        if not path.is_file():
+            chk.fail(f"{ctx.rel(path)}: missing, but {where} records SHA-256 {want}; {fix}")
+            continue
+        found = ctx.ledger.sha256(path)
+        if found != want:
+            chk.fail(f"{ctx.rel(path)}: SHA-256 is {found}, {where} recorded {want} when the evaluate "
+                     f"job wrote it — the result file changed after its evaluation; {fix}")
+        ev[name] = {"recorded": want, "found": found}
+    return ev

@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from audits import bounds, crop, derived, learning, probes, protocol, splits, sql, statistics, training
+from audits import bounds, crop, derived, extra, learning, probes, protocol, splits, sql, statistics, training
 from audits.context import AuditContext
 from audits.ledger import ReadLedger
 from audits.report import Check, build_report
@@ -47,21 +47,26 @@ CHECKS: list[Callable[[AuditContext], Check]] = [
     training.check_evaluated_models,
     probes.check_probes_out_of_tables,
     learning.check_learning_days,
+    extra.check_extra_runs,
 ]
 """Every check, in report order (families: splits, statistics, protocol)."""
 
-SCOPES: dict[str, tuple[list[Callable[[AuditContext], Check]], bool, bool]] = {
-    "all": (CHECKS, True, True),
-    "tables": (CHECKS, False, False),
-    "probes": ([probes.check_probes_out_of_tables], True, False),
-    "learning": ([learning.check_learning_days], False, True),
+PARTS = ("probes", "learning", "extra")
+"""The files outside the tables' sources an audit may read: the sample-efficiency probe's (results/probes/), the
+learning runs (results/learning/) and the figures' extra runs (results/extra/)."""
+SCOPES: dict[str, tuple[list[Callable[[AuditContext], Check]], frozenset[str]]] = {
+    "all": (CHECKS, frozenset(PARTS)),
+    "tables": (CHECKS, frozenset()),
+    "probes": ([probes.check_probes_out_of_tables], frozenset({"probes"})),
+    "learning": ([learning.check_learning_days], frozenset({"learning"})),
+    "extra": ([extra.check_extra_runs], frozenset({"extra"})),
 }
-"""Audit scope -> (its checks, whether it reads the probe files, whether it reads the learning runs). `all`: the
-whole audit in one report (`python -m audits`). The workflow splits it in three reports so that each rests on the
-files of its own target: `tables` (the `audit_report` rule, the tables' gate) runs every check over the tables'
-sources without the probe files or the learning runs, `probes` (the `audit_probes` rule, which `figures` runs)
-compares the probe files with the tables' sources, and `learning` (the `audit_learning` rule, which `learning` runs)
-checks the days of the learning runs under results/learning/."""
+"""Audit scope -> (its checks, the parts of :data:`PARTS` it reads). `all`: the whole audit in one report (`python -m
+audits`). The workflow splits it in reports that each rest on the files of their own target: `tables` (the
+`audit_report` rule, the tables' gate) runs every check over the tables' sources and reads none of the parts;
+`probes` (the `audit_probes` rule, which `figures` runs) compares the probe files with the tables' sources; `extra`
+(the `audit_extra` rule, which `figures` runs) checks the figures' extra runs; `learning` (the `audit_learning`
+rule, which `learning` runs) checks the days of the learning runs under results/learning/."""
 
 
 def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
@@ -70,7 +75,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
     family = fn.__module__.split(".")[-1]
     family = {"derived": "statistics", "crop": "statistics", "sql": "statistics", "training": "protocol",
               "probes": "protocol", "bounds": "protocol",
-              "learning": "protocol"}.get(family, family)
+              "learning": "protocol", "extra": "protocol"}.get(family, family)
     try:
         return fn(ctx)
     except Exception as exc:  # noqa: BLE001 - reported as a failed check, with its traceback
@@ -82,7 +87,7 @@ def _run_one(fn: Callable[[AuditContext], Check], ctx: AuditContext) -> Check:
 
 
 def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] | None = None,
-              scope: str = "all") -> dict:
+              scope: str = "all", extra_runs: list | None = None) -> dict:
     """Runs the audit of `scope` on the tree under `root`.
 
     Args:
@@ -90,6 +95,8 @@ def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] |
         settings: the settings the pipeline ran under (config.yaml plus overrides, resolved once).
         extra_reads: files read outside the checks (config.yaml) to include in the read-only proof.
         scope: a key of :data:`SCOPES` (default: the whole audit).
+        extra_runs: (dataset, variant, method, seed) of every extra run the figures draw, as the workflow lists
+            them (None: from the settings' figures section, which the workflow's audit slice leaves out).
     Returns:
         The report (see audits.report.build_report); report["passed"] is the verdict.
     """
@@ -97,14 +104,14 @@ def run_audit(*, root: Path | str, settings: Settings, extra_reads: list[Path] |
 
     if scope not in SCOPES:
         raise ValueError(f"audit scope {scope!r}: expected one of {', '.join(SCOPES)}")
-    checks_of_scope, read_probes, read_learning = SCOPES[scope]
+    checks_of_scope, parts = SCOPES[scope]
     torch.set_num_threads(settings.evaluation.torch_threads)  # as every evaluation job
     root = Path(root).resolve()
     ledger = ReadLedger(root=root, guarded=[root])
     for p in extra_reads or []:
         ledger.track(p)
-    ctx = AuditContext(root=root, settings=settings, ledger=ledger, read_probes=read_probes,
-                       read_learning=read_learning)
+    ctx = AuditContext(root=root, settings=settings, ledger=ledger, read_probes="probes" in parts,
+                       read_learning="learning" in parts, read_extra="extra" in parts, extra_runs=extra_runs)
     checks = []
     with ledger.guard():
         for fn in checks_of_scope:

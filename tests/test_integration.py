@@ -445,6 +445,16 @@ def test_every_figure_is_written_with_its_data_caption_and_profile(run):
                     for p in (run / "results" / "probes" / "milan").glob("*/seed0/probe.parquet"))
     assert report["passed"] and chk["passed"] and report["scope"] == "probes"
     assert len(probes) >= 2 and chk["evidence"]["probe_files"] == probes
+    # ... and the extra audit covers every extra run under results/extra/ the figures drew, and passed
+    report = json.loads((run / "results" / "audit" / "extra.json").read_text())
+    (chk,) = [c for c in report["checks"] if c["id"] == "protocol.extra_runs"]
+    assert report["passed"] and chk["passed"] and report["scope"] == "extra" and "not_yet_run" not in chk["evidence"]
+    drawn = sorted("/".join(p.parent.relative_to(run / "results" / "extra").parts)
+                   for p in (run / "results" / "extra").glob("*/*/*/seed*/days.parquet")
+                   if p.parts[-4] != "room_fill")  # room_fill's arms: its own target, not a figure of `figures`
+    assert sorted(chk["evidence"]["runs"]) == drawn and len(drawn) >= 4
+    retrained = [k for k, v in chk["evidence"]["runs"].items() if (v["model"] or {}).get("fitted_by") == "extra_train"]
+    assert retrained and all(k.split("/")[1][0] in "Ku" for k in retrained)
 
 
 def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_evaluations_on_the_same_days(run):

@@ -242,7 +242,7 @@ def test_the_tables_audit_leaves_the_probe_files_to_the_probe_audit(probed):
     red = run_audit(root=root, settings=settings, scope="probes")
     assert not red["passed"] and red["checks"][0]["failures"][0].startswith(
         "results/milan/greedy/seed0/days.parquet: day ")
-    with pytest.raises(ValueError, match="audit scope 'probe': expected one of all, tables, probes, learning"):
+    with pytest.raises(ValueError, match="audit scope 'probe': expected one of all, tables, probes, learning, extra"):
         run_audit(root=root, settings=settings, scope="probe")
 
 

@@ -15,6 +15,8 @@ PROBE_AUDIT = {"json": "results/audit/probes.json", "md": "results/audit/probes.
 """The report of the probe part of the audit (the `audit_probes` rule's outputs, rewritten by `audit`)."""
 LEARNING_AUDIT = {"json": "results/audit/learning.json", "md": "results/audit/learning.md"}
 """The report of the learning part of the audit (the `audit_learning` rule's outputs, rewritten by `audit`)."""
+EXTRA_AUDIT = {"json": "results/audit/extra.json", "md": "results/audit/extra.md"}
+"""The report of the extra part of the audit (the `audit_extra` rule's outputs, rewritten by `audit`)."""
 AUDIT_INPUTS = dict(
     raw=[p for d in DATASETS for p in raw_files(d)],
     tensors=expand(rules.prepare.output.tensor, dataset=DATASETS),
@@ -61,7 +63,8 @@ rule audit_report:
 # nothing else on a finished tree), first regenerating any of its inputs that is missing. It runs the whole audit
 # itself (its inputs are what the audit reads, not the reports, so the audit runs once): the tables' part, rewriting
 # results/audit/report.{json,md}; where the sample-efficiency probe's files exist (after `figures`), the probe
-# part, rewriting results/audit/probes.{json,md}; and where learning runs exist (after `learning`), the learning
+# part, rewriting results/audit/probes.{json,md}; where the figures' extra runs exist (after `figures`), the extra
+# part, rewriting results/audit/extra.{json,md}; and where learning runs exist (after `learning`), the learning
 # part, rewriting results/audit/learning.{json,md}.
 rule audit:
     input:
@@ -70,6 +73,8 @@ rule audit:
         probes=lambda wildcards: [p for p in probe_files() if Path(p).exists()],
         # ... and the learning runs' files present (workflow/rules/learning.smk)
         learning=lambda wildcards: [p for p in learning_audit_files() if Path(p).exists()],
+        # ... and the figures' extra runs' files present (workflow/rules/extra.smk)
+        extra=lambda wildcards: [p for p in extra_audit_files() if Path(p).exists()],
     params:
         settings=AUDIT_SETTINGS,
         configfiles=S.Untracked([str(f) for f in workflow.configfiles]),
@@ -79,6 +84,9 @@ rule audit:
         probes_md=PROBE_AUDIT["md"],
         learning_json=LEARNING_AUDIT["json"],
         learning_md=LEARNING_AUDIT["md"],
+        extra_json=EXTRA_AUDIT["json"],
+        extra_md=EXTRA_AUDIT["md"],
+        extra_runs=lambda wildcards: extra_audit_runs(),  # workflow/rules/extra.smk
     log:
         "logs/audit/audit.log",
     threads: 1

@@ -80,15 +80,17 @@ rule figure_eda:
         "../scripts/figure_results.py"
 
 
-# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed) and
-# the probe part of the leakage audit (`audit_probes`, workflow/rules/probes.smk); the call fails unless that report
-# passed and vouches for the files as they are now, e.g. when a probe number reached a table's source. Like
+# `snakemake --cores 2 figures`: every figure of the profile (after the tables, which it builds first if needed), the
+# probe part of the leakage audit (`audit_probes`, workflow/rules/probes.smk) and its extra part (`audit_extra`,
+# workflow/rules/extra.smk); the call fails unless both reports passed and vouch for the files as they are now, e.g.
+# when a probe number reached a table's source or an extra run evaluated a model trained on a test day. Like
 # `tables`, a target without output: on a finished tree its own check is the one job it runs, and it regenerates
 # any of its inputs that is missing.
 rule figures:
     input:
         FIGURE_TARGETS,
-        report=rules.audit_probes.output.json,
+        report=[rules.audit_probes.output.json, rules.audit_extra.output.json],
+        extra_files=extra_audit_files(),
         probe_files=probe_files(),
         **AUDIT_INPUTS,
     params:
