@@ -255,6 +255,28 @@ def main_days(methods, seeds):
     return [rules.evaluate.output.days.format(dataset=FIG_DATASET, method=m, seed=s) for m in methods for s in seeds]
 
 
+# The extra audit (extra.smk: audit_extra; audit.smk: audit): _EXTRA_AUDITED is defined in extra.smk.
+def extra_audit_runs():
+    """[dataset, variant, method, seed, whether the variant retrains the method] of every extra run the figures draw,
+    as the extra audit takes them (audits.extra.extra_runs: its settings slice has no figures section)."""
+    return [[d, v, m, s, learns(m) and S.variant_retrains(SETTINGS, m, EXTRA_VARIANTS[v])]
+            for d, v, m, s in dict.fromkeys(_EXTRA_AUDITED)]
+
+
+def extra_audit_files():
+    """Every file the extra audit reads that a rule writes: the result files and content record of each extra run
+    the figures draw, and the model and training manifest each of its learning methods loaded (extra_model)."""
+    out = []
+    for d, v, m, s in dict.fromkeys(_EXTRA_AUDITED):
+        keys = {"dataset": d, "variant": v, "method": m, "seed": s}
+        out += [pattern.format(**keys) for pattern in rules.extra_evaluate.output]
+        if learns(m):
+            source = {**keys, "method": SETTINGS.methods[m].training_source}
+            producer = rules.extra_train if S.variant_retrains(SETTINGS, m, EXTRA_VARIANTS[v]) else rules.train
+            out += [producer.output.model.format(**source), producer.output.manifest.format(**source)]
+    return list(dict.fromkeys(out))
+
+
 # The foresight and headroom figures (headroom.smk): their runs are extra_evaluate's, on datasets of their own.
 def extra_files_of(jobs):
     """The days.parquet of the extra runs ``jobs``: (dataset, variant, method, seed) tuples
@@ -288,6 +310,15 @@ def room_fill_model(wildcards, method=None):
     else:
         producer = rules.train
     return {"model": producer.output.model.format(**keys), "manifest": producer.output.manifest.format(**keys)}
+
+
+# The learning audit (learning.smk: audit_learning, learning; audit.smk: audit): LEARNERS and the learning rules
+# are defined in learning.smk.
+def learning_audit_files():
+    """Every file the learning audit reads that a rule writes: the runs' manifests and snapshots, and every curve."""
+    return (learning_files(rules.learning_train.output.manifest, LEARNERS)
+            + learning_files(rules.learning_train.output.snapshots, LEARNERS)
+            + learning_files(rules.learning_score.output.curve, LEARNERS + LEARNING_REFERENCES))
 
 
 # The sample-efficiency probe (probes.smk): PROBE_JOBS and the probe rule are defined there.

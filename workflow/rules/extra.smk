@@ -153,27 +153,6 @@ _EXTRA_AUDITED += S.foresight_jobs(SETTINGS) + S.headroom_jobs(SETTINGS)
 (audits.extra.extra_runs derives the same list from the settings)."""
 
 
-def extra_audit_runs():
-    """[dataset, variant, method, seed, whether the variant retrains the method] of every extra run the figures draw,
-    as the extra audit takes them (audits.extra.extra_runs: its settings slice has no figures section)."""
-    return [[d, v, m, s, learns(m) and S.variant_retrains(SETTINGS, m, EXTRA_VARIANTS[v])]
-            for d, v, m, s in dict.fromkeys(_EXTRA_AUDITED)]
-
-
-def extra_audit_files():
-    """Every file the extra audit reads that a rule writes: the result files and content record of each extra run
-    the figures draw, and the model and training manifest each of its learning methods loaded (extra_model)."""
-    out = []
-    for d, v, m, s in dict.fromkeys(_EXTRA_AUDITED):
-        keys = {"dataset": d, "variant": v, "method": m, "seed": s}
-        out += [pattern.format(**keys) for pattern in rules.extra_evaluate.output]
-        if learns(m):
-            source = {**keys, "method": SETTINGS.methods[m].training_source}
-            producer = rules.extra_train if S.variant_retrains(SETTINGS, m, EXTRA_VARIANTS[v]) else rules.train
-            out += [producer.output.model.format(**source), producer.output.manifest.format(**source)]
-    return list(dict.fromkeys(out))
-
-
 # The extra part of the leakage audit (audits.runner.SCOPES["extra"]: protocol.extra_runs over the figures' extra
 # runs under results/extra/), its own report whatever the verdict; the `figures` target passes only when it passed.
 rule audit_extra:

@@ -104,13 +104,6 @@ rule figure_learning_curves:
         "../scripts/figure_learning_curves.py"
 
 
-def learning_audit_files():
-    """Every file the learning audit reads that a rule writes: the runs' manifests and snapshots, and every curve."""
-    return (learning_files(rules.learning_train.output.manifest, LEARNERS)
-            + learning_files(rules.learning_train.output.snapshots, LEARNERS)
-            + learning_files(rules.learning_score.output.curve, LEARNERS + LEARNING_REFERENCES))
-
-
 # The learning part of the leakage audit (audits.runner.SCOPES["learning"]: protocol.learning_days over the runs under
 # results/learning/), its own report whatever the verdict; the `learning` target passes only when it passed.
 rule audit_learning:
