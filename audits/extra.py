@@ -19,7 +19,7 @@ from pathlib import Path
 from audits.context import AuditContext, AuditInputError
 from audits.protocol import result_record, verify_record
 from audits.report import Check
-from audits.training import MODEL_FILE, _under_root, manifest_days
+from audits.training import MODEL_FILE, _under_root, declares_no_test_data, manifest_days, verify_loaded_model
 
 EXTRA_LEFT_OUT = ("the figures' extra runs are not read by this audit, whose inputs are the tables' sources alone: "
                   "the extra audit (results/audit/extra.json, the `audit_extra` rule, run by `figures` and `audit`) "
@@ -55,13 +55,6 @@ def extra_dir(ctx: AuditContext, ds: str, variant: str, method: str, seed: int) 
     return ctx.results / "extra" / ds / variant / method / f"seed{seed}"
 
 
-def _expected_source(ctx: AuditContext, ds: str, variant: str, method: str, seed: int, retrains: bool) -> Path:
-    """The run directory of the model ``method``'s extra evaluation must load: extra_train's under the variant
-    where the variant retrains, else the main train job's."""
-    source = ctx.training_source(method)
-    return extra_dir(ctx, ds, variant, source, seed) if retrains else ctx.run_dir(ds, source, seed)
-
-
 def _loaded_model(chk: Check, ctx: AuditContext, ds: str, variant: str, method: str, seed: int, retrained: bool,
                   days: Path) -> dict | None:
     """A learning method's extra evaluation loaded its training source's model, unchanged since training (the
@@ -78,7 +71,8 @@ def _loaded_model(chk: Check, ctx: AuditContext, ds: str, variant: str, method: 
         if rec.get("model") is not None:
             chk.fail(f"{where}: records loading model {rec['model']!r}, but {method} does not learn")
         return {"model": None}
-    run = _expected_source(ctx, ds, variant, method, seed, retrained)
+    source = ctx.training_source(method)
+    run = extra_dir(ctx, ds, variant, source, seed) if retrained else ctx.run_dir(ds, source, seed)
     want_model, want_manifest = run / MODEL_FILE, run / "train_manifest.json"
     if not rec.get("model") or _under_root(ctx, rec["model"]).resolve() != want_model.resolve():
         chk.fail(f"{where}: model = {rec.get('model')!r}, expected {ctx.rel(want_model)}, the model "
@@ -94,24 +88,13 @@ def _loaded_model(chk: Check, ctx: AuditContext, ds: str, variant: str, method: 
         return None
     mwhere = ctx.rel(want_manifest)
     if retrained:  # the main train jobs' manifests are the tables' audit's (protocol.training_days, checkpoints)
-        manifest_days(chk, ctx, ds, man, where=mwhere, method=ctx.training_source(method))
-        if man.get("read_test_data") is not False:
-            chk.fail(f"{mwhere}: read_test_data is {man.get('read_test_data')!r}; training must declare that it read "
-                     f"no test data (false)")
-    expected = man.get("model_sha256")
-    if not expected:
-        chk.fail(f"{mwhere}: no model_sha256 recorded — the manifest predates content hashing; re-run its train job")
+        manifest_days(chk, ctx, ds, man, where=mwhere, method=source)
+        declares_no_test_data(chk, man, mwhere)
+    train_job = f"{ds}/{variant}/{source}/seed{seed}" if retrained else f"{ds}/{source}/seed{seed}"
+    if verify_loaded_model(chk, ctx, where=where, rec=rec, mpath=want_model, want_model=want_model,
+                           manifest=want_manifest, man=man, method=method, source=source,
+                           train_job=train_job) is None:
         return None
-    loaded = rec.get("model_sha256")
-    if loaded != expected:
-        chk.fail(f"{where}: the evaluation loaded {ctx.rel(want_model)} with SHA-256 {loaded}, expected {expected} "
-                 f"(model_sha256 of {mwhere}) — evaluated with a model its training source did not train")
-    found = ctx.ledger.sha256(want_model) if want_model.is_file() else None
-    if found is None:
-        chk.fail(f"{ctx.rel(want_model)}: missing; {where} records it as the model it evaluated")
-    elif found != expected:
-        chk.fail(f"{ctx.rel(want_model)}: SHA-256 is {found}, expected {expected} (model_sha256 of {mwhere}) — the "
-                 f"model changed after training")
     return {"model": ctx.rel(want_model), "fitted_by": "extra_train" if retrained else "train",
             "training_days": len(set(man.get("days") or [])) if retrained else "checked by protocol.training_days"}
 

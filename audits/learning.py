@@ -17,7 +17,7 @@ import polars as pl
 
 from audits.context import AuditContext, AuditInputError, label_order
 from audits.report import Check
-from audits.training import manifest_days
+from audits.training import declares_no_test_data, manifest_days
 
 LEARNING_LEFT_OUT = ("the learning runs are not read by this audit, whose inputs are the tables' sources alone: the "
                      "learning audit (results/audit/learning.json, the `audit_learning` rule, run by `learning` and "
@@ -27,11 +27,11 @@ LEARNING_LEFT_OUT = ("the learning runs are not read by this audit, whose inputs
 
 def learning_runs(ctx: AuditContext) -> list[Path]:
     """Every run directory under results/learning/ holding a training manifest or a curve (none in a tree where
-    `learning` never ran, and none read by an audit that leaves them out: ``ctx.read_learning``)."""
+    `learning` never ran)."""
     from dswm.protocol.learning import LEARNING_DIR, SCORE_FILE
 
     base = ctx.root / LEARNING_DIR
-    if not (base.is_dir() and ctx.read_learning):
+    if not base.is_dir():
         return []
     found = {p.parent for p in base.glob(f"*/*/seed*/{SCORE_FILE}")} | {p.parent for p in
                                                                        base.glob("*/*/seed*/train_manifest.json")}
@@ -39,10 +39,14 @@ def learning_runs(ctx: AuditContext) -> list[Path]:
 
 
 def _days_of(ctx: AuditContext, ds: str) -> tuple[dict[int, str], list[int], set[int]]:
-    """({day index: label}, training days in time order, test days) of ``ds``, by the settings' split."""
-    labels = {int(d["index"]): d["label"] for d in ctx.meta(ds)["days"]}
-    train = sorted((int(d) for d in ctx.train_index(ds)), key=lambda d: label_order(labels[d]))
-    return labels, train, {int(d) for d in ctx.test_index(ds)}
+    """({day index: label}, training days in time order, test days) of ``ds``, by the settings' split (computed once
+    per audit)."""
+    key = f"learning.days.{ds}"
+    if key not in ctx.cache:
+        labels = {int(d["index"]): d["label"] for d in ctx.meta(ds)["days"]}
+        train = sorted((int(d) for d in ctx.train_index(ds)), key=lambda d: label_order(labels[d]))
+        ctx.cache[key] = labels, train, {int(d) for d in ctx.test_index(ds)}
+    return ctx.cache[key]
 
 
 def _validation(chk: Check, ctx: AuditContext, ds: str, where: str, man: dict) -> list[int] | None:
@@ -153,10 +157,10 @@ def check_learning_days(ctx: AuditContext) -> Check:
                       "its validation days; those are the last training days in time order, none a test day; every "
                       "row of every curve there (learners and references) is a validation row on one of them; and "
                       "every snapshot a curve scores is in its run's index and hashes as recorded.")
-    runs = learning_runs(ctx)
     if not ctx.read_learning:
         chk.evidence["note"] = LEARNING_LEFT_OUT
         return chk
+    runs = learning_runs(ctx)
     if not runs:
         chk.evidence["note"] = "no learning run under results/learning/ (the `learning` target has not run)"
         return chk
@@ -172,7 +176,7 @@ def check_learning_days(ctx: AuditContext) -> Check:
             if ds not in ctx.datasets:
                 raise AuditInputError(f"{ctx.rel(run)}: a learning run of dataset {ds!r}, which this profile does not "
                                       f"prepare (run.datasets: {ctx.datasets})")
-            labels, train, _ = _days_of(ctx, ds)
+            labels = _days_of(ctx, ds)[0]
             if not manifest.is_file():  # a reference method's scores: checked with the learners' days below
                 curves.append((ds, run / "curve.parquet"))
                 continue
@@ -185,9 +189,7 @@ def check_learning_days(ctx: AuditContext) -> Check:
         except ValueError as exc:
             chk.fail(f"{where}: not valid JSON ({exc})")
             continue
-        if man.get("read_test_data") is not False:
-            chk.fail(f"{where}: read_test_data is {man.get('read_test_data')!r}; training must declare that it read "
-                     f"no test data (false)")
+        declares_no_test_data(chk, man, where)
         evidence = {"validation_days": man.get("validation_days")}
         if val is not None:
             held.setdefault(ds, {})[key] = sorted(labels[d] for d in val)
@@ -213,8 +215,7 @@ def check_learning_days(ctx: AuditContext) -> Check:
         sets = {tuple(v) for v in held.get(ds, {}).values()}
         allowed = None
         if len(sets) == 1:
-            labels, _, _ = _days_of(ctx, ds)
-            by_label = {lab: d for d, lab in labels.items()}
+            by_label = {lab: d for d, lab in _days_of(ctx, ds)[0].items()}
             allowed = [by_label[lab] for lab in next(iter(sets))]
         df = _curve(chk, ctx, ds, path, allowed)
         key = "/".join(path.parent.parts[-3:])

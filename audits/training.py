@@ -124,6 +124,15 @@ def manifest_days(chk: Check, ctx: AuditContext, ds: str, man: dict, *, where: s
     return days
 
 
+def declares_no_test_data(chk: Check, man: dict, where: str) -> None:
+    """The training manifest ``man`` (at ``where``) records ``read_test_data: false``; a finding otherwise."""
+    if "read_test_data" not in man:
+        chk.fail(f"{where}: read_test_data is not recorded; expected false (training reads no test-day data)")
+    elif man["read_test_data"] is not False:
+        chk.fail(f"{where}: read_test_data = {man['read_test_data']!r}; expected false — training read "
+                 f"test-day data")
+
+
 def _parse_utc(text: str) -> float:
     return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc).timestamp()
 
@@ -252,11 +261,7 @@ def check_checkpoints(ctx: AuditContext) -> Check:
             chk.fail(str(exc))
             continue
         where, run = ctx.rel(mpath), ctx.run_dir(ds, method, seed)
-        if "read_test_data" not in man:
-            chk.fail(f"{where}: read_test_data is not recorded; expected false (training reads no test-day data)")
-        elif man["read_test_data"] is not False:
-            chk.fail(f"{where}: read_test_data = {man['read_test_data']!r}; expected false — training read "
-                     f"test-day data")
+        declares_no_test_data(chk, man, where)
         missing = [k for k in HASH_KEYS if not man.get(k)]
         if missing:
             chk.fail(f"{where}: no {' or '.join(missing)} recorded — the manifest predates content hashing; "
@@ -330,29 +335,52 @@ def check_evaluated_models(ctx: AuditContext) -> Check:
         except AuditInputError as exc:
             chk.fail(str(exc))
             continue
-        expected = man.get("model_sha256")
-        if not expected:
-            chk.fail(f"{ctx.rel(want_manifest)}: no model_sha256 recorded — the manifest predates content hashing; "
-                     f"re-run the train job of {ds}/{source}/seed{seed}")
+        hashes = verify_loaded_model(chk, ctx, where=where, rec=rec, mpath=mpath, want_model=want_model,
+                                     manifest=want_manifest, man=man, method=method, source=source,
+                                     train_job=f"{ds}/{source}/seed{seed}")
+        if hashes is None:
             continue
-        loaded = rec.get("model_sha256")
-        if loaded != expected:
-            chk.fail(f"{where}: the evaluation loaded {ctx.rel(mpath)} with SHA-256 {loaded}, expected {expected} "
-                     f"(model_sha256 of {ctx.rel(want_manifest)}) — {method} was evaluated with a model {source} "
-                     f"did not train")
-        found = ctx.ledger.sha256(mpath) if mpath.is_file() else None
-        if found is None:
-            chk.fail(f"{ctx.rel(mpath)}: missing; {where} records it as the model it evaluated")
-        elif found != expected:
-            # The source's own model truncated or replaced: its train job writes it again.
-            rel = shlex.quote(ctx.rel(mpath))
-            fix = (f"; re-run its train job: `rm {rel}`, then the same snakemake command again (or add "
-                   f"`--forcerun {rel}` to it)" if mpath.resolve() == want_model.resolve() else "")
-            chk.fail(f"{ctx.rel(mpath)}: SHA-256 is {found}, expected {expected} (model_sha256 of "
-                     f"{ctx.rel(want_manifest)}, which {where} names) — not the model {source} trained{fix}")
+        expected, loaded, found = hashes
         chk.evidence[f"{ds}/{method}/seed{seed}"] = {"train_source": source, "model": ctx.rel(mpath),
                                                      "expected": expected, "loaded": loaded, "found": found}
     return chk
+
+
+def verify_loaded_model(chk: Check, ctx: AuditContext, *, where: str, rec: dict, mpath: Path, want_model: Path,
+                        manifest: Path, man: dict, method: str, source: str,
+                        train_job: str) -> tuple[str, str | None, str | None] | None:
+    """An evaluation loaded the model its training source trained: the SHA-256 it recorded at load time and the
+    model file's SHA-256 now both equal the manifest's model_sha256.
+
+    Args:
+        chk: the check that records the findings; ctx: the audit's context; where: the result file, as named;
+        rec: its model record; mpath: the model file it records; want_model: the source's model file;
+        manifest, man: the source's training manifest (path and content); method, source: the evaluated method and
+        its training source; train_job: the train job that writes the model ("dataset/[variant/]method/seed<seed>").
+    Returns:
+        (expected, loaded, found) SHA-256s, or None when the manifest records no model_sha256 (a finding).
+    """
+    expected = man.get("model_sha256")
+    if not expected:
+        chk.fail(f"{ctx.rel(manifest)}: no model_sha256 recorded — the manifest predates content hashing; "
+                 f"re-run the train job of {train_job}")
+        return None
+    loaded = rec.get("model_sha256")
+    if loaded != expected:
+        chk.fail(f"{where}: the evaluation loaded {ctx.rel(mpath)} with SHA-256 {loaded}, expected {expected} "
+                 f"(model_sha256 of {ctx.rel(manifest)}) — {method} was evaluated with a model {source} "
+                 f"did not train")
+    found = ctx.ledger.sha256(mpath) if mpath.is_file() else None
+    if found is None:
+        chk.fail(f"{ctx.rel(mpath)}: missing; {where} records it as the model it evaluated")
+    elif found != expected:
+        # The source's own model truncated or replaced: its train job writes it again.
+        rel = shlex.quote(ctx.rel(mpath))
+        fix = (f"; re-run its train job: `rm {rel}`, then the same snakemake command again (or add "
+               f"`--forcerun {rel}` to it)" if mpath.resolve() == want_model.resolve() else "")
+        chk.fail(f"{ctx.rel(mpath)}: SHA-256 is {found}, expected {expected} (model_sha256 of "
+                 f"{ctx.rel(manifest)}, which {where} names) — not the model {source} trained{fix}")
+    return expected, loaded, found
 
 
 def _iso(t: float) -> str:

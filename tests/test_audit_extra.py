@@ -123,7 +123,11 @@ def test_a_model_or_result_file_changed_after_it_was_recorded_fails(extras):
     chk = check(root, settings)
     assert len(chk.failures) == 3, chk.failures
     assert chk.failures[0].startswith(f"results/extra/milan/K2/dswm/seed0/model.pt: SHA-256 is {sha(model)}, ")
-    assert chk.failures[0].endswith("— the model changed after training")
+    assert chk.failures[0].endswith("(model_sha256 of results/extra/milan/K2/dswm/seed0/train_manifest.json, which "
+                                    "results/extra/milan/K2/dswm/seed0/days.parquet names) — not the model dswm "
+                                    "trained; re-run its train job: `rm results/extra/milan/K2/dswm/seed0/model.pt`, "
+                                    "then the same snakemake command again (or add `--forcerun "
+                                    "results/extra/milan/K2/dswm/seed0/model.pt` to it)")
     assert chk.failures[1].startswith(f"results/extra/milan/K2/greedy/seed0/days.parquet: SHA-256 is {sha(days)}, ")
     assert "the result file changed after its evaluation; delete the result files of milan/K2/greedy/seed0" in (
         chk.failures[1])
