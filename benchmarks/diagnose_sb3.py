@@ -21,36 +21,22 @@ from pathlib import Path
 
 import torch
 
-from dswm import settings as S
-from dswm.config import load_yaml
-from dswm.pipeline.setup import build_controller, load_tensor, set_up
-from dswm.protocol.evaluation import evaluate
+from _learning_job import learning_job
+from dswm.pipeline.setup import score_snapshot
 from dswm.protocol.learning import learning_days
-from dswm.settings import EvaluationSettings
 
 
 def setup(root: Path, profile: str, method: str):
     """The evaluation set-up of the method's learning score job, the tensor and (training days, validation days)."""
-    config = load_yaml(root / "config.yaml")
-    config["profile"] = profile
-    settings = S.resolve(config, root=root, schema=root / "workflow" / "schemas" / "config.schema.yaml")
-    learning = S.learning_settings(config, profile)
-    job = S.learning_score_slice(settings, learning, method)
-    intensity = root / "results" / "calibration" / "demand_intensity.json"
-    s = set_up(job, "evaluation", EvaluationSettings, intensity if intensity.exists() else None)
-    tensor = load_tensor(root / "results" / "data" / learning.dataset)
+    s, tensor, learning, job = learning_job(root, profile, method, "score")
     return s, tensor, learning_days(tensor, int(job["validation_days"])), learning.seed
 
 
 def score(s, tensor, method: str, seed: int, path: Path, days: list[int], deterministic: bool) -> dict:
-    """Served ratio and energy per slot of the model at ``path`` on ``days`` (as ``score_snapshot`` evaluates)."""
-    ctrl = build_controller(s, method, seed)
-    ctrl.load(path)
-    ctrl.deterministic = deterministic
-    ev = s.settings
-    rows = evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed, limits={"id": None, "ood": None},
-                    profile=s.job["profile"], device=ev.device, batch_days=ev.batch_days, trajectory=False,
-                    progress_interval_s=1e9, days={"validation": days}).days
+    """Served ratio and energy per slot of the model at ``path`` on ``days``, scored as the learning_score job scores
+    a snapshot, acting with the policy's mean (``deterministic``) or its samples."""
+    rows = score_snapshot(s, tensor=tensor, method=method, seed=seed, path=path, days={"validation": days},
+                          progress_interval_s=1e9, configure=lambda ctrl: setattr(ctrl, "deterministic", deterministic))
     return {"served_ratio": round(float(rows["sr_mean"].mean()), 4),
             "energy_kj_per_slot": round(float(rows["energy_kj_per_slot"].mean()), 1)}
 

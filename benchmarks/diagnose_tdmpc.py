@@ -26,29 +26,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dswm import settings as S
-from dswm.config import load_yaml
+from _learning_job import learning_job
 from dswm.methods.collect import lloyd_moves
 from dswm.methods.tdmpc.agent import project
 from dswm.methods.tdmpc.diagnose import reward_ranking
 from dswm.methods.tdmpc.planner import mppi
-from dswm.pipeline.setup import build_controller, load_tensor, set_up
+from dswm.pipeline.setup import build_controller
 from dswm.protocol.learning import learning_days
-from dswm.settings import Runtime
 from dswm.sim.core import core_from_tensor
 
 
 def setup(root: Path, profile: str, method: str):
     """The method's learning-run controller (built as the learning_train job builds it), the validation core and
     the settings."""
-    config = load_yaml(root / "config.yaml")
-    config["profile"] = profile
-    settings = S.resolve(config, root=root, schema=root / "workflow" / "schemas" / "config.schema.yaml")
-    learning = S.learning_settings(config, profile)
-    job = S.learning_train_slice(settings, learning, method)
-    intensity = root / "results" / "calibration" / "demand_intensity.json"
-    s = set_up(job, "runtime", Runtime, intensity if intensity.exists() else None)
-    tensor = load_tensor(root / "results" / "data" / learning.dataset)
+    s, tensor, learning, job = learning_job(root, profile, method, "train")
     _, val = learning_days(tensor, int(job["validation_days"]))
     return (lambda: build_controller(s, method, learning.seed)), core_from_tensor(tensor, s.scenario, val), s
 

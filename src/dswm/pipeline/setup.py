@@ -17,7 +17,7 @@ import dataclasses
 import json
 import shlex
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 
@@ -134,14 +134,19 @@ def build_controller(s: JobSetup, method: str, seed: int) -> Controller:
 
 
 def score_snapshot(s: JobSetup, *, tensor, method: str, seed: int, path: str | Path | None,
-                   days: Mapping[str, Sequence[int]], progress_interval_s: float):
+                   days: Mapping[str, Sequence[int]], progress_interval_s: float,
+                   configure: Callable[[Controller], None] | None = None):
     """Evaluate a fresh controller of ``method``, with the model file ``path`` loaded (None: as built), on ``days``
     ({split: day indices}) in the evaluation's own environment and initial fleet (``s.settings``: the job's
     EvaluationSettings); its per-day rows. The evaluation seeds torch and numpy with ``seed`` each time, so a
-    snapshot's number does not depend on the ones scored before it (the probe and learning-curve jobs)."""
+    snapshot's number does not depend on the ones scored before it (the probe and learning-curve jobs).
+    ``configure`` is applied to the loaded controller before it acts (a diagnostic's change, e.g.
+    ``benchmarks/diagnose_sb3.py`` sampling an SB3 policy; no job passes one)."""
     ctrl = build_controller(s, method, seed)
     if path is not None:
         ctrl.load(path)
+    if configure is not None:
+        configure(ctrl)
     ev = s.settings
     return evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed, limits={"id": None, "ood": None},
                     profile=s.job["profile"], device=ev.device, batch_days=ev.batch_days, trajectory=False,
