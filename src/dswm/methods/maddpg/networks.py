@@ -71,24 +71,31 @@ def local_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tenso
     row, col = cells_of(fleet, rows, cols)
     active = fleet[..., 3].to(maps.dtype)
     # Channels-last maps padded with r zero cells: the w+1 maps, then the active UAVs per cell (occupancy)
-    padded = torch.zeros(n, pr, pc, ch, dtype=maps.dtype, device=maps.device)
+    padded = torch.empty(n, pr, pc, ch, dtype=maps.dtype, device=maps.device)
+    for border in (padded[:, :radius], padded[:, radius + rows:], padded[:, radius:radius + rows, :radius],
+                   padded[:, radius:radius + rows, radius + cols:]):
+        border.zero_()
     padded[:, radius:radius + rows, radius:radius + cols, :m] = maps.permute(0, 2, 3, 1)
     occupancy = torch.zeros(n, pr * pc, dtype=maps.dtype, device=maps.device)
     occupancy.scatter_add_(1, (row + radius) * pc + col + radius, active)
     padded[..., m] = occupancy.view(n, pr, pc)
-    # Every S x S window as a view indexed by its top-left corner, which is the UAV's own cell; a window's row is
-    # S cells x (w+2) channels contiguous
-    windows = padded.as_strided((n, rows, cols, side, side * ch), (pr * pc * ch, pc * ch, ch, pc * ch, 1))
-    crop = windows[torch.arange(n, device=maps.device).unsqueeze(1), row, col].view(n, k, -1)  # (N, K, S S (w+2))
+    # Every row of every S x S window is S cells x (w+2) channels contiguous: viewed as the overlapping spans that
+    # start at each cell, the window of a UAV whose own cell is (row, col) is the S spans starting at padded cells
+    # (row + i, col), i < S (its top-left corner is the UAV's cell), gathered whole by index_select
+    spans = padded.view(-1).as_strided((n * pr * pc - side + 1, side * ch), (ch, 1))
+    start = (torch.arange(n, device=maps.device).view(n, 1, 1) * (pr * pc)
+             + (row.unsqueeze(-1) + torch.arange(side, device=maps.device)) * pc + col.unsqueeze(-1))
+    crop = spans.index_select(0, start.view(-1)).view(n, k, -1)  # (N, K, S S (w+2))
     crop[..., (radius * side + radius) * ch + m] -= active  # each UAV removes itself from its own cell's count
     return torch.cat([crop, fleet.to(crop.dtype), time.to(crop.dtype).unsqueeze(1).expand(n, k, time.shape[-1])],
                      dim=-1)
 
 
 def joint_observation(maps: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-    """(N, joint_dim) the critic's input: the scaled maps (N, w+1, R, C), all fleet features, time, flattened."""
+    """(N, joint_dim) the critic's input: the scaled maps (N, w+1, R, C), all fleet features, time, flattened, in
+    the dtype of ``maps``."""
     n = maps.shape[0]
-    return torch.cat([maps.reshape(n, -1), fleet.reshape(n, -1), time], dim=-1)
+    return torch.cat([maps.reshape(n, -1), fleet.reshape(n, -1).to(maps.dtype), time.to(maps.dtype)], dim=-1)
 
 
 class SharedActor(nn.Module):
