@@ -86,6 +86,25 @@ def test_a_method_override_of_the_training_section_reaches_its_settings(raw):
     assert built["dswm_wo_unc"].settings.training.batch == raw["dswm"]["training"]["batch"]
 
 
+def test_a_profile_budget_of_the_training_section_sits_under_the_methods_overrides(raw):
+    """``dswm.budgets.<profile>.training`` is merged over ``dswm.training``, and a method's own ``training`` over
+    both: the paper profile compiles every DSWM method's training step, the demo none, one method may opt out."""
+    import copy
+
+    cfg = copy.deepcopy(raw)
+    cfg["dswm"]["budgets"]["paper"]["training"] = {"compile": True, "lr": 5.0e-4}
+    cfg["dswm"]["methods"]["dswm_wo_unc"]["training"] = {"compile": False}
+    paper = runconfig.resolve({**cfg, "profile": "paper"})
+    demo = runconfig.resolve({**cfg, "profile": "demo"})
+    assert raw["dswm"]["training"]["compile"] is False and raw["dswm"]["budgets"]["paper"]["training"] == {
+        "compile": True}
+    assert [paper.methods[m].options.training.compile for m in ("dswm", "dswm_plus", "dswm_wo_unc")] == [
+        True, True, False]
+    assert paper.methods["dswm_wo_unc"].options.training.lr == 5.0e-4   # the budget's other key stays
+    assert not any(demo.methods[m].options.training.compile for m in ("dswm", "dswm_plus", "dswm_wo_unc"))
+    assert demo.methods["dswm"].options.training.lr == raw["dswm"]["training"]["lr"]
+
+
 @pytest.mark.parametrize("method", ["dswm", "dswm_wo_dec"])
 def test_fit_save_load_act(resolved, core, tmp_path, method):
     ctl = build(method, resolved, 3, transitions=286, steps=4)

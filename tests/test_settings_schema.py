@@ -342,7 +342,7 @@ def test_a_missing_or_unknown_dswm_or_search_key_is_named_with_the_class_that_de
         f"field of dswm.methods.dswm.world_model.WorldModelConfig",
         "config.yaml: unknown key 'dswm.methods.dswm_wo_unc.planner.horizn' (expected one of "
         f"{', '.join(sorted(keys_of(PlannerConfig)))}); did you mean 'horizon'?",
-        "config.yaml: unknown key 'dswm.budgets.paper.stepz' (expected one of planner, steps, transitions); did you "
+        "config.yaml: unknown key 'dswm.budgets.paper.stepz' (expected one of planner, steps, training, transitions); did you "
         "mean 'steps'?"])
 
 
@@ -403,12 +403,13 @@ def test_no_setting_of_dswm_or_the_search_is_written_in_the_schema_file():
     for name in [*SECTIONS, *PARTIALS]:
         assert set(RAW["$defs"][name]) == {"x-settings", "x-form"}
     dswm_block = keys(RAW["properties"]["dswm"])       # the section's frame: device, its sections, methods, budgets
-    assert dswm_block & {k for cls in DSWM_CLASSES for k in keys_of(cls)} == {"planner"}   # the section's name
+    # the sections' names, which DSWMBudget's keys repeat
+    assert dswm_block & {k for cls in DSWM_CLASSES for k in keys_of(cls)} == {"planner", "training"}
     assert set(RAW["properties"]["search"]) == {"$ref", "description"}
     elsewhere = keys({k: v for k, v in RAW["$defs"].items() if k not in {*SECTIONS, *PARTIALS}}) | keys(
         {k: v for k, v in RAW["properties"].items() if k not in ("dswm", "search", "methods")})
     for cls in DSWM_CLASSES:                           # gamma, sigma0, dataset, ... name other settings
-        unique = sorted(n for n in set(keys_of(cls)) - elsewhere - {"planner"}
+        unique = sorted(n for n in set(keys_of(cls)) - elsewhere - {"planner", "training"}
                         if re.search(rf"^\s*{n}:", text, re.M))
         assert unique == [], (cls.__qualname__, unique)
 

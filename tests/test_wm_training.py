@@ -1,4 +1,6 @@
 """World-model training on demo data: losses fall, checkpoints are complete and resume exactly."""
+import copy
+import dataclasses
 import shutil
 
 import numpy as np
@@ -12,7 +14,7 @@ from dswm.methods.base import DayContext
 from dswm.methods.classical import GreedyController
 from dswm.methods.collect import collect
 from dswm.methods.dswm.settings import resolve
-from dswm.methods.dswm.training import TrainConfig, load_checkpoint, save_training_figure, train
+from dswm.methods.dswm.training import TrainConfig, load_checkpoint, loss_function, save_training_figure, train
 from dswm.methods.search import SearchSettings
 from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
 from prep.pipeline import generate_demo
@@ -49,7 +51,7 @@ def _train_cfg(**kw):
     base = dict(lr=1e-3, batch=4, seq_len=8, grad_clip=100.0, collect_policy="lloyd", collect_parallel=2,
                 explore_std=0.3, bw_explore_std=0.5, collect_search=SearchSettings(sweeps=1, lattice=5, refine=0,
                                                                                    bw_logits=()),
-                log_points=10_000, checkpoint_every=1000)
+                log_points=10_000, checkpoint_every=1000, compile=False)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -145,3 +147,53 @@ def test_checkpoint_is_complete_and_resumes_to_identical_losses(demo_core, repla
         m.encoder.dem_mean.fill_(123.0)
     load_checkpoint(tmp_path / "a.pt", model=m)
     assert float(m.encoder.dem_mean) == float(blob["model"]["encoder.dem_mean"]) != 123.0
+
+
+def test_compiled_training_computes_the_eager_loss_and_gradients_and_repeats_itself(demo_core, replay, tmp_path):
+    """``dswm.training.compile`` (the paper profile's): with the Gaussian draws set aside (the posterior and prior
+    means, as filtering uses), the compiled loss and every parameter's gradient are the eager ones up to float
+    rounding; a compiled run repeats itself with its seed, through a checkpoint too."""
+    core, _ = demo_core
+    torch.manual_seed(0)
+    model = _tiny(core)
+    model.set_normalizer(replay.demand)
+    batch = replay.sample(2, 3, torch.Generator().manual_seed(3))  # short sequences: a short compile
+    rssm = type(model.rssm)
+    draw = rssm._gaussian
+    rssm._gaussian = lambda self, stats, sample: draw(self, stats, False)  # no draws: both sides are deterministic
+    try:
+        grads = []
+        for compiled in (False, True):
+            model.zero_grad(set_to_none=True)
+            loss, metrics = loss_function(model, compiled)(batch)
+            loss.backward()
+            grads.append((float(loss), {k: float(v) for k, v in metrics.items()},
+                          {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}))
+    finally:
+        rssm._gaussian = draw
+    (eager, eager_m, eager_g), (comp, comp_m, comp_g) = grads
+    assert comp == pytest.approx(eager, rel=1e-4) and eager > 0
+    for k in eager_m:
+        assert comp_m[k] == pytest.approx(eager_m[k], rel=1e-3, abs=1e-6), k
+    assert eager_g.keys() == comp_g.keys() and len(eager_g) > 20
+    for name, g in eager_g.items():
+        torch.testing.assert_close(comp_g[name], g, rtol=1e-3, atol=1e-5, msg=name)
+    assert any(float(g.abs().max()) > 1e-3 for g in eager_g.values())
+
+    cfg = _train_cfg(compile=True, checkpoint_every=2, batch=2, seq_len=3)
+
+    start = copy.deepcopy(model.state_dict())
+
+    def fresh():  # the same model object, so that its compiled loss is reused (guards on the module), reset
+        model.load_state_dict(start)
+        return model
+
+    first = train(fresh(), replay, steps=4, cfg=cfg, seed=7, checkpoint=tmp_path / "a.pt")
+    assert np.isfinite(first["losses/loss"]).all()
+    eager_run = train(fresh(), replay, steps=4, cfg=dataclasses.replace(cfg, compile=False), seed=7,
+                      checkpoint=tmp_path / "e.pt")
+    assert first["losses/loss"] != eager_run["losses/loss"]  # its own draws: compiled runs are their own
+    # a second run with the seed, interrupted after 2 steps and resumed: the first run's losses, draws included
+    train(fresh(), replay, steps=2, cfg=cfg, seed=7, checkpoint=tmp_path / "c.pt")
+    resumed = train(fresh(), replay, steps=4, cfg=cfg, seed=7, checkpoint=tmp_path / "c.pt")
+    assert resumed["losses/loss"] == first["losses/loss"]

@@ -20,13 +20,17 @@ from dswm.methods.dswm.world_model import WorldModelConfig
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DSWMBudget:
-    """What a profile sets of DSWM (config.yaml ``dswm.budgets.<profile>``): the training budget, and the planner
-    keys it reduces (merged over ``dswm.planner``, before the method's overrides)."""
+    """What a profile sets of DSWM (config.yaml ``dswm.budgets.<profile>``): the training budget, and the training
+    and planner keys it changes (merged over ``dswm.training`` and ``dswm.planner``, before the method's
+    overrides)."""
 
     transitions: int = setting("count")
     """Pre-collected training transitions."""
     steps: int = setting("count")
     """Gradient steps."""
+    training: dict[str, Any] = setting(ref="dswm_training_partial")
+    """Some keys of ``dswm.training`` (the schema's ``$defs/dswm_training_partial``; checked as the merged
+    training settings)."""
     planner: dict[str, Any] = setting(ref="dswm_planner_partial")
     """Some keys of ``dswm.planner`` (the schema's ``$defs/dswm_planner_partial``; checked as the merged planner)."""
 
@@ -63,7 +67,7 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
     """
     if method not in dswm["methods"]:
         raise ConfigError(f"config.yaml: key 'dswm.methods' has no entry {method!r} (found {sorted(dswm['methods'])})")
-    budgeted, _ = with_budget(dswm, profile, "dswm", required=True)  # transitions, steps and planner reductions
+    budgeted, _ = with_budget(dswm, profile, "dswm", required=True)  # transitions, steps, training and planner keys
     budget = build(DSWMBudget, dswm["budgets"][profile], f"dswm.budgets.{profile}")
     over = dswm["methods"].get(method) or {}
     planner = build(PlannerConfig, merge(budgeted["planner"], over.get("planner")),
@@ -76,5 +80,5 @@ def resolve(dswm: Mapping[str, Any], *, method: str, profile: str, search: Mappi
         device=str(dswm["device"]),
         world_model=WorldModelConfig.from_flat(merge(dswm["world_model"], over.get("world_model")),
                                                "dswm.world_model"),
-        training=build(TrainConfig, merge(dswm["training"], over.get("training")), "dswm.training"),
+        training=build(TrainConfig, merge(budgeted["training"], over.get("training")), "dswm.training"),
         transitions=budget.transitions, steps=budget.steps, planner=planner)

@@ -47,6 +47,8 @@ class TrainConfig(CollectSettings):
     """Number of points of the loss history (averages over equal windows of steps)."""
     checkpoint_every: int = setting("count")
     """Gradient steps between checkpoints (the last step always writes one)."""
+    compile: bool = setting("flag")
+    """Compute the loss and its gradient as code compiled by ``torch.compile`` (:func:`loss_function`)."""
 
 
 # ---- checkpoints ----------------------------------------------------------------------------------------
@@ -84,6 +86,15 @@ def make_optimizer(model: WorldModel, cfg: TrainConfig) -> torch.optim.Optimizer
     return torch.optim.Adam(model.online_parameters(), lr=cfg.lr)
 
 
+def loss_function(model: WorldModel, compile: bool) -> Callable:
+    """``model.loss``, or with ``compile`` that method compiled by ``torch.compile``: the same loss on the same
+    batch, its element-wise work fused into a few loops and the backward pass compiled with it (AOTAutograd). The
+    first call in a process compiles (one to two minutes at the paper's sizes); the floats differ from the eager
+    loss's in the last bits, and its Gaussian draws come from the compiled code's own generator, seeded from torch's
+    (so a seed still gives the same run)."""
+    return torch.compile(model.loss, dynamic=False) if compile else model.loss
+
+
 def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainConfig, seed: int,
           checkpoint: str | Path, resume: bool = True, extra: dict | None = None,
           on_step: Callable[[int], None] | None = None) -> dict[str, list[float]]:
@@ -101,6 +112,7 @@ def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainCo
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     opt = make_optimizer(model, cfg)
+    loss_of = loss_function(model, cfg.compile)
     history: dict[str, list[float]] = {"step": [], **{f"losses/{k}": [] for k in HISTORY_KEYS}}
     start = 0
     if resume and Path(checkpoint).exists():
@@ -116,7 +128,7 @@ def train(model: WorldModel, replay: SequenceReplay, *, steps: int, cfg: TrainCo
                      initial=start, total=steps):
         batch = replay.sample(cfg.batch, cfg.seq_len, gen)
         batch = {k: v.to(model.cells.device) for k, v in batch.items()}
-        loss, metrics = model.loss(batch)
+        loss, metrics = loss_of(batch)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.online_parameters(), cfg.grad_clip)
