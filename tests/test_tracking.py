@@ -564,3 +564,66 @@ def test_a_store_made_before_the_figures_experiment_gets_it_and_loses_no_run(db,
     orphan = client.create_run(figures.experiment_id, tags={"job_key": "wm/milan/dswm/seed0", "workdir": here})
     assert tracking.close_orphans(mlflow_cfg=cfg) == 1
     assert client.get_run(orphan.info.run_id).info.status == "KILLED"
+
+
+def _log_same_datasets(cfg, tmp_path, seed, barrier, rounds, errors):
+    """One job's side of the race below: a run, then ``rounds`` datasets logged as the other job logs them."""
+    try:
+        path = tmp_path / "demand.parquet"
+        with open_job(cfg, tmp_path, seed=seed) as run:
+            for i in range(rounds):
+                barrier.wait(timeout=60)
+                run.log_dataset(path, name="milan", digest=f"digest{i:04d}", context="training")
+    except Exception as err:  # the parent names it
+        errors.put(f"seed {seed}: {type(err).__name__}: {err}"[:400])
+
+
+def test_two_jobs_logging_the_same_new_dataset_at_once_both_get_it(store, tmp_path):
+    """MLflow's log_inputs looks a dataset up, then inserts it: two jobs that add the same new dataset at the same
+    moment (two train jobs of one dataset on two cores) race for its unique key, and the loser is retried, finding
+    the winner's row (``tracking.concurrent_job_conflict``), instead of failing its job."""
+    import multiprocessing
+
+    cfg, info, client = store
+    (tmp_path / "demand.parquet").write_bytes(b"demand")
+    rounds = 25
+    ctx = multiprocessing.get_context("fork")
+    barrier, errors = ctx.Barrier(2), ctx.Queue()
+    jobs = [ctx.Process(target=_log_same_datasets, args=(cfg, tmp_path, seed, barrier, rounds, errors))
+            for seed in (0, 1)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(timeout=300)
+    failures = [errors.get() for _ in range(errors.qsize())]
+    assert failures == [] and [job.exitcode for job in jobs] == [0, 0]
+    finished = runs(client, info, "FINISHED")
+    assert len(finished) == 2
+    for r in finished:  # each run holds every dataset once, the same rows as the other run's
+        assert sorted(d.dataset.digest for d in r.inputs.dataset_inputs) == [f"digest{i:04d}" for i in range(rounds)]
+
+
+def test_only_a_conflict_with_a_concurrent_job_is_retried():
+    race = ("(sqlite3.IntegrityError) UNIQUE constraint failed: datasets.experiment_id, datasets.name, "
+            "datasets.digest [SQL: INSERT INTO datasets (dataset_uuid, experiment_id, name, digest) VALUES (?, ?, ?, ?)]")
+    assert tracking.client.concurrent_job_conflict(RuntimeError(race))
+    assert tracking.client.concurrent_job_conflict(RuntimeError(
+        'duplicate key value violates unique constraint "dataset_pk" [SQL: INSERT INTO datasets (dataset_uuid) ...]'))
+    assert tracking.client.concurrent_job_conflict(RuntimeError("(sqlite3.OperationalError) database is locked"))
+    assert not tracking.client.concurrent_job_conflict(RuntimeError(
+        "(sqlite3.IntegrityError) UNIQUE constraint failed: params.key, params.run_uuid [SQL: INSERT INTO params]"))
+    calls = []
+
+    def flaky():
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError(race)
+        return "linked"
+
+    assert tracking.retry(flaky) == "linked" and len(calls) == 2
+
+    def duplicate_param():
+        raise RuntimeError("(sqlite3.IntegrityError) UNIQUE constraint failed: params.key [SQL: INSERT INTO params]")
+
+    with pytest.raises(tracking.TrackingError, match="UNIQUE constraint failed: params.key"):
+        tracking.retry(duplicate_param)

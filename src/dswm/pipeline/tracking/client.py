@@ -129,8 +129,23 @@ def refused_message(uri: str, call: str, status: int, answer: str) -> str:
             f"grants the user EDIT or MANAGE on the experiment, or {where}")
 
 
+def concurrent_job_conflict(err: BaseException) -> bool:
+    """Whether ``err`` is a conflict with a concurrent job that the same call, made again, gets past:
+
+    * SQLite's lock, held by another job's write (two jobs on two cores);
+    * two jobs adding the same new dataset (name and digest) to the experiment at once: MLflow's ``log_inputs``
+      looks the dataset up, then inserts it when it was not found, so the slower insert breaks the datasets
+      table's unique key (SQLite: "UNIQUE constraint failed", PostgreSQL: "duplicate key value"); made again, the
+      call finds the dataset the other job inserted and links the run to it.
+    """
+    text = str(err)
+    if "database is locked" in text:
+        return True
+    return "INSERT INTO datasets" in text and ("UNIQUE constraint failed" in text or "duplicate key value" in text)
+
+
 def retry(fn, *args, attempts: int = 8, **kwargs):
-    """Call ``fn``, retrying while SQLite reports a lock held by a concurrent job (two jobs on two cores).
+    """Call ``fn``, retrying while it meets a concurrent job (:func:`concurrent_job_conflict`).
 
     A tracking server's transient HTTP errors are retried by MLflow's client itself (:data:`HTTP_ENV`). A server's
     refusal of the credentials (401 or 403) raises :class:`TrackingAuthError` at once. Any other failure, or one that
@@ -142,7 +157,7 @@ def retry(fn, *args, attempts: int = 8, **kwargs):
         except TrackingError:
             raise
         except Exception as err:  # MLflow wraps SQLAlchemy's OperationalError in its own exception types
-            if "database is locked" in str(err) and i < attempts - 1:
+            if concurrent_job_conflict(err) and i < attempts - 1:
                 time.sleep(0.2 * 2**i)
                 continue
             uri, call = _describe(fn)
