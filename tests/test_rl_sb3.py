@@ -398,8 +398,9 @@ def sac_losses_after_steps(model, n: int) -> tuple[dict[str, float], dict[str, t
 
 def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small):
     """dswm's SAC (dswm.methods.rl.sac_train) against stable_baselines3.SAC's own train() from the same weights,
-    replay buffer and random draws: bit-identical losses and weights in float32; with bfloat16 products the
-    losses within 2 %."""
+    replay buffer and random draws: in float32 the same losses and weights up to float rounding (bit for bit on
+    one CPU; on another, with AMX, the weights differ by up to ~4e-9 after 3 steps, a difference in the last bits
+    of float kernels whose place was not isolated); with bfloat16 products the losses within 2 %."""
     torch.set_num_threads(1)
     kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
     kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class")
@@ -410,6 +411,7 @@ def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small)
 
     reference = build(SB3SAC)
     reference.learn(total_timesteps=2 * HORIZON)  # fills the buffer with random actions, no gradient step
+    reference_start = {k: v.detach().clone() for k, v in reference.policy.state_dict().items()}
     assert reference._n_updates == 0 and reference.replay_buffer.size() == HORIZON
     runs = {}
     for dtype in ("float32", "bfloat16"):
@@ -419,9 +421,11 @@ def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small)
         runs[dtype] = sac_losses_after_steps(fast, 3)
     want, want_weights = sac_losses_after_steps(reference, 3)
     got, got_weights = runs["float32"]
-    assert got == want
+    assert got == pytest.approx(want, rel=1e-6)
     assert want_weights.keys() == got_weights.keys()
-    assert all(torch.equal(got_weights[name], value) for name, value in want_weights.items())
+    for name, value in want_weights.items():
+        torch.testing.assert_close(got_weights[name], value, rtol=1e-6, atol=1e-7, msg=name)
+    assert any(not torch.equal(want_weights[name], value) for name, value in reference_start.items())  # trained
     half, _ = runs["bfloat16"]
     assert half == pytest.approx(want, rel=0.02)
     assert half["critic_loss"] != want["critic_loss"]  # the bfloat16 products were used
