@@ -12,6 +12,7 @@ from dswm.methods.base import DayContext
 from dswm.methods.collect import collect
 from dswm.methods.search import SearchSettings
 from dswm.methods.tdmpc import learner as learner_mod
+from dswm.methods.tdmpc import model as model_mod
 from dswm.methods.tdmpc.agent import TDMPCController, project, round_bounds
 from dswm.methods.tdmpc.diagnose import one_step_rewards, rank_correlation, reward_ranking
 from dswm.methods.tdmpc.learner import Learner
@@ -209,6 +210,33 @@ def test_the_replays_scaled_maps_give_the_raw_windows_losses_bit_for_bit(scn, re
     total_scaled, zs_scaled, m_scaled = lrn.losses(scaled)
     assert torch.equal(total_raw, total_scaled) and m_raw == m_scaled
     assert all(torch.equal(a, b) for a, b in zip(zs_raw, zs_scaled))
+
+
+def test_the_fleet_maps_bumps_are_exps_own_values_and_zero_where_exp_is_subnormal():
+    d = torch.linspace(-20.0, 20.0, 4001)           # steps of 0.01: no d within 1e-3 of the cut at |d| = 13.217
+    got, want = model_mod.bump(d), torch.exp(-0.5 * d ** 2)
+    normal = want >= torch.finfo(torch.float32).tiny
+    assert torch.equal(got[normal], want[normal])
+    assert torch.equal(got[~normal], torch.zeros(int((~normal).sum())))
+    assert int(((want > 0) & ~normal).sum()) > 200       # where exp gives subnormal numbers (|d| 13.22 .. 14.42)
+    assert float(d[normal].abs().max()) == pytest.approx(13.21, abs=1e-4)
+
+
+@pytest.mark.parametrize("scaled", [True, False])
+def test_under_autocast_the_encoders_input_is_built_in_bfloat16_with_the_float32_ones_values(scn, replay, scaled):
+    # autocast's conv would round a float32 input to bfloat16; the image is written in bfloat16 at once instead
+    enc = learner_for(scn).model.encoder
+    b = replay.sample_windows(16, 3, torch.Generator().manual_seed(5), scaled=scaled)
+    maps = b["scaled_demand" if scaled else "demand"][0]
+    full = enc.image(maps, b["fleet"][0], scaled)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        half = enc.image(maps, b["fleet"][0], scaled)
+        fleet = model_mod.fleet_map(b["fleet"][0], GRID.rows, GRID.cols)    # its product runs in bfloat16 here
+    assert full.dtype == torch.float32 and half.dtype == torch.bfloat16
+    m = maps.shape[-3]
+    assert torch.equal(half[:, :m], full[:, :m].to(torch.bfloat16))
+    assert torch.equal(half[:, m], fleet.to(torch.bfloat16))
+    assert not torch.equal(half.float(), full)          # the rounding is there to see
 
 
 # ----------------------------------------------------------------------------------- learning

@@ -124,16 +124,14 @@ class Learner:
         total.backward()
         nn.utils.clip_grad_norm_(self.model.model_parameters(), self.s.grad_clip)
         self.optim.step()
-        q_params = self.model.q_parameters()
-        for p in q_params:
-            p.requires_grad_(False)
+        # The policy's gradient alone (Q frozen): the backward pass stops at the policy's weights. The Q heads'
+        # weights keep requires_grad, so autocast casts them once for the H+1 steps instead of once per step.
+        pi_params = list(self.model.policy.parameters())
         pi_loss = self.policy_loss(zs)
         self.pi_optim.zero_grad(set_to_none=True)
-        pi_loss.backward()
-        nn.utils.clip_grad_norm_(self.model.policy.parameters(), self.s.grad_clip)
+        pi_loss.backward(inputs=pi_params)
+        nn.utils.clip_grad_norm_(pi_params, self.s.grad_clip)
         self.pi_optim.step()
-        for p in q_params:
-            p.requires_grad_(True)
         polyak(self.target, self.model, self.s.tau)
         self.step += 1
         return {**metrics, "pi": pi_loss.item()}
