@@ -106,10 +106,8 @@ class Encoder(nn.Module):
         img = torch.empty((*lead, m + 1, self.rows, self.cols), dtype=conv_dtype(demand), device=demand.device)
         if scaled:
             img[..., :m, :, :] = demand
-        elif img.dtype == demand.dtype:
+        else:   # into a bfloat16 buffer log1p still computes in float32 and rounds once, as a cast after it would
             scale_demand(demand, out=img[..., :m, :, :])
-        else:
-            img[..., :m, :, :] = scale_demand(demand)
         flat = fleet.reshape(-1, *fleet.shape[-2:])
         img[..., m, :, :] = fleet_map(flat, self.rows, self.cols).view(*lead, self.rows, self.cols)
         return img
