@@ -1,7 +1,7 @@
 """Projected core-hours of the paper profile, from measured rates and the DAG's job list.
 
-Run: python benchmarks/project_paper.py [--rates benchmarks/results/learners_cpu_t1.json] [--target tables]
-         [--measured results/benchmarks --measured-profile demo]
+Run: python benchmarks/project_paper.py [--rates benchmarks/results/learners_cpu_t1.json [--rates more.json]]
+         [--target tables] [--measured results/benchmarks --measured-profile demo]
 Prints one row per rule and method (jobs, core-hours at the median rates, and at the fastest and the slowest
 repeat), a subtotal per rule, the assumptions, and last a line ``total: N core-hours``.
 
@@ -41,7 +41,7 @@ import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
-from typing import Iterable, Mapping, NamedTuple
+from typing import Iterable, Mapping, NamedTuple, Sequence
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -155,6 +155,29 @@ def rate(rates: Mapping, learner: str, key: str, case: str) -> float:
     return float(node[case])
 
 
+def merge_rates(docs: Sequence[tuple[str, Mapping]]) -> tuple[dict, list[str]]:
+    """One rates document from several ``bench_learners.py`` results, later ones overriding earlier ones per
+    learner (and the environment's and the planners' rates where a later one has them), with one note per file
+    naming what was taken from it. So one learner benchmarked again (``--items tdmpc``) replaces that learner's
+    rates only. Every file must hold ``paper`` rates."""
+    merged: dict = {"learners": {}}
+    notes = []
+    for name, doc in docs:
+        if doc.get("profile") != "paper":
+            raise SystemExit(f"{name}: rates measured under profile {doc.get('profile')!r}, expected 'paper'")
+        taken = sorted(doc.get("learners", {}))
+        merged["learners"].update(doc.get("learners", {}))
+        for key in ("environment", "planners"):
+            if key in doc:
+                merged[key] = doc[key]
+                taken.append(key)
+        machine = doc.get("machine", {})
+        load = machine.get("load_avg_1min", float("nan"))
+        notes.append(f"rates: {name} (quick: {doc.get('quick')}, 1-min load {load:.1f} on {machine.get('cpus')} CPUs "
+                     f"when written; code {doc['trees']['current']['rev'][:12]}): {', '.join(taken)}")
+    return merged, notes
+
+
 def plan_ms(rates: Mapping, which: str, case: str) -> float:
     """DSWM's ("dswm") or JTORATC's full solve ("jtoratc_full_solve") ms per decision at ``case``."""
     r = rates["planners"]["current"][which]
@@ -250,8 +273,9 @@ def report(rows: Mapping, *, notes: list[str]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rates", type=Path, default=HERE / "results" / "learners_cpu_t1.json",
-                    help="bench_learners.py's result (its 'current' side)")
+    ap.add_argument("--rates", type=Path, action="append",
+                    help="bench_learners.py's result (its 'current' side); given again, a later file's learners "
+                         "replace an earlier one's (default: benchmarks/results/learners_cpu_t1.json)")
     ap.add_argument("--target", default="tables", help="the Snakemake target whose jobs are projected")
     ap.add_argument("--jobs", type=Path, help="a saved `snakemake -n --forceall` output instead of running it")
     ap.add_argument("--measured", type=Path, default=ROOT / "results" / "benchmarks",
@@ -262,11 +286,9 @@ def main() -> None:
     from dswm.config import load_yaml
 
     config = load_yaml(ROOT / "config.yaml")
-    rates = json.loads(args.rates.read_text())
-    args.rates = args.rates.resolve()
-    shown = args.rates.relative_to(ROOT) if args.rates.is_relative_to(ROOT) else args.rates
-    if rates.get("profile") != "paper":
-        raise SystemExit(f"{args.rates}: rates measured under profile {rates.get('profile')!r}, expected 'paper'")
+    files = [p.resolve() for p in args.rates or [HERE / "results" / "learners_cpu_t1.json"]]
+    rates, rate_notes = merge_rates([(str(p.relative_to(ROOT) if p.is_relative_to(ROOT) else p),
+                                      json.loads(p.read_text())) for p in files])
     settings = runconfig.resolve({**config, "profile": "paper"})
     jobs = parse_dryrun(args.jobs.read_text()) if args.jobs else dag_jobs(args.target)
     days = eval_days(config)
@@ -275,10 +297,7 @@ def main() -> None:
     rows = project(jobs, rates=rates, work=train_work(settings), days=days,
                    measured=measured_lookup(root, scale=scale),
                    tdmpc_parallel=settings.methods["tdmpc"].options.parallel)
-    machine = rates.get("machine", {})
-    load = machine.get("load_avg_1min", float("nan"))
-    notes = [f"rates: {shown} (quick: {rates.get('quick')}, 1-min load {load:.1f} on {machine.get('cpus')} CPUs "
-             f"when written; code {rates['trees']['current']['rev'][:12]})",
+    notes = [*rate_notes,
              f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`",
              f"test days per evaluation: {days}; other jobs: {root or 'no measured run'} (evaluations x paper days /"
              f" {args.measured_profile} days), else {DEFAULT_S:.0f} s",

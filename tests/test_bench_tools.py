@@ -118,6 +118,20 @@ def test_projection_adds_each_jobs_work_over_its_measured_rate(tmp_path):
     assert "train (all)" in text and "evaluate (all)" in text
 
 
+def test_a_later_rates_file_replaces_only_the_learners_it_measured():
+    trees = {"trees": {"current": {"rev": "a" * 40}}, "machine": {"cpus": 2, "load_avg_1min": 0.5}}
+    again = {"profile": "paper", **trees,
+             "learners": {"tdmpc": {"current": {"play": {"transitions_per_second": spread(40.0, 30.0, 50.0)}}}}}
+    merged, notes = pp.merge_rates([("all.json", {**RATES, **trees}), ("tdmpc.json", again)])
+    assert pp.rate(merged, "tdmpc", "play.transitions_per_second", "median") == 40.0
+    assert pp.rate(merged, "sac", "train.transitions_per_second", "median") == 100.0
+    assert pp.plan_ms(merged, "dswm", "median") == 500.0
+    assert notes[0].endswith("dswm_world_model, sac, tdmpc, environment, planners")
+    assert notes[1].startswith("rates: tdmpc.json") and notes[1].endswith("): tdmpc")
+    with pytest.raises(SystemExit, match="tdmpc.json: rates measured under profile 'demo'"):
+        pp.merge_rates([("all.json", {**RATES, **trees}), ("tdmpc.json", {**again, "profile": "demo"})])
+
+
 def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
     base = {"settings_hash": "a", "train": {"transitions_per_second": spread(10.0, 9.0, 11.0),
                                             "gradient_steps_per_second": spread(5.0, 4.0, 6.0)}}
