@@ -254,6 +254,32 @@ def test_gradient_steps_lower_the_told_loss_on_a_fixed_batch(scn, replay):
     assert m1["reward"] < 0.5 * m0["reward"] and m1["consistency"] < m0["consistency"]
 
 
+def test_a_bfloat16_step_reads_bfloat16_maps_and_channels_last_convs_and_gives_the_float32_maps_step_bit_for_bit(
+        scn, replay):
+    # train_step samples the scaled maps in the step's dtype and the encoder lays a bfloat16 image out channels-last;
+    # from the same weights and draws, updates from float32 maps through NCHW convs give the same weights, every bit
+    lrn = {k: learner_for(scn, batch=32, matmul_dtype="bfloat16") for k in ("new", "old")}
+    assert replay.scaled_maps(torch.bfloat16).dtype == torch.bfloat16
+    assert torch.equal(replay.scaled_maps(torch.bfloat16), replay.scaled_maps().to(torch.bfloat16))
+    plain = lambda self, img, fleet, time: self.head(torch.cat([self.conv(img), fleet.flatten(1), time], -1))
+    seen = []
+    conv = lrn["new"].model.encoder.conv
+    hook = conv.register_forward_pre_hook(lambda mod, args: seen.append(args[0].is_contiguous(
+        memory_format=torch.channels_last) and not args[0].is_contiguous()))
+    metrics = {"new": [lrn["new"].train_step(replay) for _ in range(3)]}
+    hook.remove()
+    assert seen and all(seen)                        # the convs did read a channels-last image
+    gen = lrn["old"].generator
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(model_mod.Encoder, "from_image", plain)
+        metrics["old"] = [lrn["old"].update(replay.sample_windows(32, 3, gen, scaled=True)) for _ in range(3)]
+    assert metrics["new"] == metrics["old"]
+    for a, b in zip(lrn["new"].model.state_dict().values(), lrn["old"].model.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match=r"dtype torch\.bfloat16 needs scaled=True"):
+        replay.sample_windows(4, 3, torch.Generator(), dtype=torch.bfloat16)
+
+
 def test_bfloat16_steps_keep_float32_weights_and_state_and_follow_the_float32_losses(scn, replay):
     # matmul_dtype: bfloat16 runs the losses' forward under autocast: from the same weights and batches, its losses
     # stay within 2 % of float32's over 20 steps and still fall; weights, gradients and Adam's state stay float32.

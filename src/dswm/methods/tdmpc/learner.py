@@ -138,7 +138,8 @@ class Learner:
 
     def train_step(self, replay) -> dict[str, float]:
         """Sample a batch from ``replay`` (``TransitionReplay``) and :meth:`update` on it."""
-        return self.update(replay.sample_windows(self.s.batch, self.s.horizon, self.generator, scaled=True))
+        return self.update(replay.sample_windows(self.s.batch, self.s.horizon, self.generator, scaled=True,
+                                                 dtype=MATMUL_DTYPES[self.s.matmul_dtype]))
 
     def state_dict(self) -> dict:
         """Weights (online and target), optimizers, the sampler's generator and the step."""

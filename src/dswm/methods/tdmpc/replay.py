@@ -51,7 +51,7 @@ class TransitionReplay(SequenceReplay):
         self.terminated: list[torch.Tensor] = []   # (T,) bool
         self.own: list[bool] = []                  # False: the pre-collection; True: TD-MPC's own episode
         self._stacked = None
-        self._scaled = None                        # scale_demand of every map, computed on first use
+        self._scaled = {}                          # dtype: scale_demand of every map in it, computed on first use
 
     @classmethod
     def from_precollected(cls, replay: SequenceReplay, *, grid, scenario) -> "TransitionReplay":
@@ -90,30 +90,38 @@ class TransitionReplay(SequenceReplay):
                              torch.stack(self.terminated), torch.as_tensor(self.rows))
         return self._stacked
 
-    def scaled_maps(self) -> torch.Tensor:
+    def scaled_maps(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """(D, S, R, C) the encoder's scaling of every stored map (``model.scale_demand``), computed once: a window
-        then reads its maps transformed instead of transforming w+1 maps per observation per batch."""
-        if self._scaled is None:
-            self._scaled = scale_demand(self.demand)
-        return self._scaled
+        then reads its maps transformed instead of transforming w+1 maps per observation per batch. In ``dtype``:
+        the float32 values rounded once (to nearest), as the encoder's bfloat16 input buffer rounds them, so a
+        bfloat16 step reads the values it would have rounded itself, at half the bytes and without a cast per
+        observation (each map is read by w+1 overlapping windows)."""
+        if dtype not in self._scaled:
+            scaled = self._scaled.get(torch.float32)
+            if scaled is None:
+                scaled = self._scaled[torch.float32] = scale_demand(self.demand)
+            self._scaled[dtype] = scaled.to(dtype)
+        return self._scaled[dtype]
 
-    def scaled_windows(self, row: torch.Tensor, start: torch.Tensor, length: int) -> torch.Tensor:
-        """The windows of slots start..start+length-1 of each of B sequences, from :meth:`scaled_maps`, as a view
-        (length, B, w+1, R, C) of one strip of the maps x_{s-w..s+length-1} per sequence (edge-padded as
+    def scaled_windows(self, row: torch.Tensor, start: torch.Tensor, length: int,
+                       dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """The windows of slots start..start+length-1 of each of B sequences, from :meth:`scaled_maps` in ``dtype``,
+        as a view (length, B, w+1, R, C) of one strip of the maps x_{s-w..s+length-1} per sequence (edge-padded as
         ``window_maps`` pads): the same values as ``window_maps`` with w+1 times fewer maps read."""
-        strip = self.strip_maps(row, start, length, self.scaled_maps())             # (B, length + w, R, C)
+        strip = self.strip_maps(row, start, length, self.scaled_maps(dtype))        # (B, length + w, R, C)
         b, _, r, c = strip.shape
         st = strip.stride()
         return strip.as_strided((length, b, self.window + 1, r, c), (st[1], st[0], st[1], st[2], st[3]))
 
     def sample_windows(self, batch: int, horizon: int, generator: torch.Generator, *,
-                       scaled: bool = False) -> dict[str, torch.Tensor]:
+                       scaled: bool = False, dtype: torch.dtype = torch.float32) -> dict[str, torch.Tensor]:
         """``batch`` windows of H+1 consecutive observations of one day (H = ``horizon``), uniformly.
 
         Args:
             scaled: give the windows' maps as ``scaled_demand``, a view into strips of :meth:`scaled_maps` (the
                 same values as the encoder's scaling of ``demand``; :meth:`scaled_windows`), in place of
                 ``demand``.
+            dtype: the scaled maps' dtype (:meth:`scaled_maps`); float32 unless ``scaled``.
         Returns:
             dict with ``demand`` (H+1, B, w+1, R, C) (or ``scaled_demand``), ``fleet`` (H+1, B, K, 7), ``time``
             (H+1, B, 2), ``action`` (H, B, 3K), ``reward`` (H, B), ``terminated`` (H, B) bool.
@@ -129,7 +137,10 @@ class TransitionReplay(SequenceReplay):
         slot = start.unsqueeze(0) + torch.arange(horizon + 1).unsqueeze(1)          # (H+1, B)
         ep = eps.unsqueeze(0).expand_as(slot)
         row = rows[eps].unsqueeze(0).expand_as(slot)
-        maps = {"scaled_demand": self.scaled_windows(rows[eps], start, horizon + 1)} if scaled else \
+        if dtype != torch.float32 and not scaled:
+            raise ValueError(f"TransitionReplay.sample_windows: dtype {dtype} needs scaled=True (the raw maps are "
+                             "float32)")
+        maps = {"scaled_demand": self.scaled_windows(rows[eps], start, horizon + 1, dtype)} if scaled else \
             {"demand": self.window_maps(row, slot)}
         return {**maps, "fleet": fleet[ep, slot], "time": self.time_features(slot),
                 "action": actions[ep[:-1], slot[:-1]].flatten(-2), "reward": rewards[ep[:-1], slot[:-1]],
