@@ -95,9 +95,9 @@ class Encoder(nn.Module):
     def from_image(self, img: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """z (N, latent) from the convs' input (N, w+2, R, C) (:meth:`image`), fleet (N, K, 7) and time (N, 2).
 
-        A bfloat16 input is laid out channels-last before the convs: oneDNN's bfloat16 convolutions (and the ELUs
-        between them) run ~1.5x faster so at these sizes, with the same values; float32 keeps its layout (there the
-        gain is small and the sums' order, hence the last bit, would change)."""
+        A bfloat16 input is laid out channels-last before the convs: at these sizes oneDNN's bfloat16 convolutions
+        run ~1.5x faster in that layout and give the same values; float32 keeps its layout (there the gain is small
+        and the sums' order, hence the last bit, would change)."""
         if img.dtype == torch.bfloat16:
             img = img.contiguous(memory_format=torch.channels_last)
         return self.head(torch.cat([self.conv(img), fleet.flatten(1), time], -1))
