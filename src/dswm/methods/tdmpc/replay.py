@@ -97,10 +97,7 @@ class TransitionReplay(SequenceReplay):
         bfloat16 step reads the values it would have rounded itself, at half the bytes and without a cast per
         observation (each map is read by w+1 overlapping windows)."""
         if dtype not in self._scaled:
-            scaled = self._scaled.get(torch.float32)
-            if scaled is None:
-                scaled = self._scaled[torch.float32] = scale_demand(self.demand)
-            self._scaled[dtype] = scaled.to(dtype)
+            self._scaled[dtype] = scale_demand(self.demand).to(dtype)     # float32: the same tensor, no copy
         return self._scaled[dtype]
 
     def scaled_windows(self, row: torch.Tensor, start: torch.Tensor, length: int,
@@ -128,6 +125,9 @@ class TransitionReplay(SequenceReplay):
         """
         if not self.rows:
             raise ValueError("TransitionReplay.sample_windows: the buffer is empty")
+        if dtype != torch.float32 and not scaled:
+            raise ValueError(f"TransitionReplay.sample_windows: dtype {dtype} needs scaled=True (the raw maps are "
+                             "float32)")
         fleet, actions, rewards, term, rows = self._stack()
         n_dec = actions.shape[1]
         if horizon > n_dec:
@@ -137,9 +137,6 @@ class TransitionReplay(SequenceReplay):
         slot = start.unsqueeze(0) + torch.arange(horizon + 1).unsqueeze(1)          # (H+1, B)
         ep = eps.unsqueeze(0).expand_as(slot)
         row = rows[eps].unsqueeze(0).expand_as(slot)
-        if dtype != torch.float32 and not scaled:
-            raise ValueError(f"TransitionReplay.sample_windows: dtype {dtype} needs scaled=True (the raw maps are "
-                             "float32)")
         maps = {"scaled_demand": self.scaled_windows(rows[eps], start, horizon + 1, dtype)} if scaled else \
             {"demand": self.window_maps(row, slot)}
         return {**maps, "fleet": fleet[ep, slot], "time": self.time_features(slot),
