@@ -26,9 +26,12 @@ def pytest_addoption(parser):
 def pytest_collection_modifyitems(config, items):
     """Tests marked `cluster` need engines that `tests/cluster/install.sh` installs as root: they are collected with
     ``--cluster`` only, and a plain run says how many it left out."""
+    # The tests that read the local smoke run come after every other test: with ``--cluster`` that run starts only
+    # once the SLURM run has ended (smoke_tables), and the unit tests before it use the core the SLURM jobs leave
+    # idle instead of waiting beside an idle pytest. The cluster tests come last: they read the SLURM run's record.
+    items.sort(key=lambda item: (item.get_closest_marker("cluster") is not None,
+                                 "smoke_tables" in getattr(item, "fixturenames", ())))
     if config.getoption("--cluster"):
-        # last: they wait for the SLURM run that started with the session (cluster/background.py)
-        items.sort(key=lambda item: item.get_closest_marker("cluster") is not None)
         return
     left = [item for item in items if item.get_closest_marker("cluster")]
     if left:
