@@ -3,7 +3,7 @@ world-model quality replay go through, so a fix to job setup is made once.
 
 * :func:`set_up`            the typed runtime or evaluation settings, the scenario the job simulates (u from the
                             calibrate rule's record, times a u variant's factor) and the method, from the job's slice;
-                            torch's threads and the allocator set (:func:`init_process`).
+                            torch's threads, the allocator and subnormal flushing set (:func:`init_process`).
 * :func:`open_run`          the job's one MLflow run (``dswm.pipeline.tracking.job_run``), logging and hashing the
                             slice as used.
 * :func:`build_controller`  the job's controller.
@@ -26,6 +26,7 @@ from dswm.methods import registry
 from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
+from dswm.pipeline.subnormals import flush_subnormals
 from dswm.protocol.evaluation import evaluate
 from dswm.settings import EvaluationSettings, MethodSettings, Runtime, calibrated_scenario, scale_intensity
 from dswm.sim.core import FleetCore, core_from_tensor
@@ -76,7 +77,9 @@ def log_demand_input(run: tracking.JobRun, tensor_dir: str | Path, dataset: str,
 
 
 def init_process(runtime: Runtime | EvaluationSettings) -> None:
-    """Set torch's threads (``runtime.torch_threads``) and keep freed tensor memory in the heap."""
+    """Flush subnormal floats to zero (before any worker thread starts: they inherit it), set torch's threads
+    (``runtime.torch_threads``) and keep freed tensor memory in the heap."""
+    flush_subnormals()
     torch.set_num_threads(runtime.torch_threads)
     keep_freed_memory()
 

@@ -1,0 +1,27 @@
+"""Subnormal floats flushed to zero in every job (the CPU's FTZ and DAZ modes, ``torch.set_flush_denormal``).
+
+A float32 below 2^-126 (1.18e-38) is subnormal. x86 CPUs compute with such values through a slow microcode path,
+tens to hundreds of times slower than with normal numbers, and an Adam optimizer makes them as a matter of course:
+a weight whose gradient is zero for a while (a first-layer weight of a cell without demand, a dead ReLU) keeps
+first and second moments that shrink geometrically by beta1 = 0.9 and beta2 = 0.999 per step, through the
+subnormal range, for ~150 and ~16,000 steps. SAC at the paper's sizes (a 2,914-wide input, two [256, 256] critics)
+slowed from 21 to 15 gradient steps per second within its benchmark's first ~1,700 steps for this reason alone,
+the spread of its repeats on the 2-core machine (README, Benchmarks).
+
+Flushed, such a value is 0 (FTZ: results; DAZ: inputs). What that changes is below float32's resolution of every
+value a job records: an Adam step of a subnormal moment moves a weight by ~1e-35. The mode is a property of a
+thread: it is set before torch or numba start their worker threads, which inherit it (POSIX threads inherit the
+floating-point environment of the thread that creates them).
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+
+
+@functools.cache
+def flush_subnormals() -> bool:
+    """Set FTZ and DAZ on this thread once per process. Returns False (and changes nothing) where the CPU has no
+    such mode."""
+    return bool(torch.set_flush_denormal(True))
