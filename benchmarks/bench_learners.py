@@ -155,14 +155,20 @@ def measure_item(item: str, *, tree: Path, tensor_dir: Path, profile: str, quick
     from dswm.sim.core import core_from_tensor
     from prep.tensor import load
 
-    keep_freed_memory()   # as every job does (dswm.pipeline.setup.init_process)
+    try:   # as every job does (dswm.pipeline.setup.init_process); a tree from before subnormal flushing does not
+        from dswm.pipeline.subnormals import flush_subnormals
+    except ModuleNotFoundError:
+        flushed = False
+    else:
+        flushed = flush_subnormals()
+    keep_freed_memory()
     settings = resolved(tree, profile)
     tensor = load(tensor_dir)
     record = tensor_dir.parents[1] / "calibration" / "demand_intensity.json"
     scenario, source = scenario_for(settings, record)
     c = counts(quick)
     head = {"item": item, "dswm_imported_from": str(Path(dswm.__file__).parent), "intensity_from": source,
-            "threads": torch.get_num_threads()}
+            "threads": torch.get_num_threads(), "subnormals_flushed": flushed}
     if item == "environment":
         from bench_env import bench_core
 

@@ -165,7 +165,7 @@ def test_quick_benchmark_on_the_smoke_tensor_writes_every_learner(smoke_tables, 
     for name, entry in result["learners"].items():
         cur = entry["current"]
         assert cur["transitions_per_second"]["median"] > 0 and cur["gradient_steps_per_second"]["median"] > 0, name
-        assert cur["threads"] == 1
+        assert cur["threads"] == 1 and cur["subnormals_flushed"] is True, name   # as every job (init_process)
     assert result["learners"]["ppo"]["current"]["train"]["seconds_per_repeat"]["repeats"] == 5
     assert result["planners"]["current"]["dswm"]["decisions"] == 5
     assert set(result["environment"]["current"]["batches"]) == {"1", "2", "10"}   # the smoke learners' batches
