@@ -51,6 +51,16 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 
 
 @pytest.fixture(autouse=True)
+def subnormals_kept():
+    """Every test starts and ends in the CPU's default mode, subnormal floats computed: a job run in this process
+    turns on their flushing (dswm.pipeline.subnormals) for the thread, and hypothesis refuses to draw floats under
+    it."""
+    torch.set_flush_denormal(False)
+    yield
+    torch.set_flush_denormal(False)
+
+
+@pytest.fixture(autouse=True)
 def one_thread():
     """Tests use small tensors: one torch thread is fastest, and immune to a busy machine's oversubscription
     (code under test may set its own thread count; it is restored after each test)."""

@@ -11,17 +11,16 @@ the spread of its repeats on the 2-core machine (README, Benchmarks).
 Flushed, such a value is 0 (FTZ: results; DAZ: inputs). What that changes is below float32's resolution of every
 value a job records: an Adam step of a subnormal moment moves a weight by ~1e-35. The mode is a property of a
 thread: it is set before torch or numba start their worker threads, which inherit it (POSIX threads inherit the
-floating-point environment of the thread that creates them).
+floating-point environment of the thread that creates them). It applies to every float operation of the thread,
+Python's and numpy's float64 too (below 2.2e-308); hypothesis refuses to draw floats under it, so the tests keep
+the default mode (tests/conftest.py).
 """
 from __future__ import annotations
-
-import functools
 
 import torch
 
 
-@functools.cache
 def flush_subnormals() -> bool:
-    """Set FTZ and DAZ on this thread once per process. Returns False (and changes nothing) where the CPU has no
-    such mode."""
+    """Set FTZ and DAZ on this thread (again, where it was set before). Returns False (and changes nothing) where
+    the CPU has no such mode."""
     return bool(torch.set_flush_denormal(True))
