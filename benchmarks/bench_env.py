@@ -15,7 +15,6 @@ import numpy as np
 import torch
 
 from _timing import rate, timed, write
-from dswm.pipeline.allocator import keep_freed_memory
 from dswm.sim.core import FleetCore, Grid, initial_positions
 from dswm.sim.env import default_scenario, synthetic_demand
 
@@ -52,12 +51,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
-    # imported here: bench_learners imports bench_core into a baseline tree, which may predate this module
-    from dswm.pipeline.subnormals import flush_subnormals
+    # imported here: bench_learners imports bench_core into a baseline tree, which may predate prepare_process
+    from dswm.pipeline.setup import prepare_process
 
-    flush_subnormals()
-    torch.set_num_threads(args.threads)
-    keep_freed_memory()   # as every job does (dswm.pipeline.setup.init_process)
+    prepare_process(args.threads)   # as every job does (dswm.pipeline.setup.init_process)
     result = bench_core(demo_core(), args.episodes, repeats=args.repeats)
     write("env", {**result, "target_fleet_slots_per_second": 10_000})
 

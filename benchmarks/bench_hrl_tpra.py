@@ -37,8 +37,7 @@ from dswm.methods.hrl_tpra import HRLTPRAController, HRLTPRASettings
 from dswm.methods.hrl_tpra.actors import LoopMLP, StackedMLP
 from dswm.methods.hrl_tpra.features import GLOBAL_FEATURES, Frame, local_dim, plan_inputs
 from dswm.methods.hrl_tpra.pointer import PointerPlanner
-from dswm.pipeline.allocator import keep_freed_memory
-from dswm.pipeline.subnormals import flush_subnormals
+from dswm.pipeline.setup import prepare_process
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = {"macro_slots": 6, "candidates": 32, "pointer_hidden": 64, "tanh_clip": 10.0, "crop_radius": 2,
@@ -162,9 +161,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--rounds", type=int, default=2, help="rounds of n_envs day-episodes per timed fit")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    flush_subnormals()
-    keep_freed_memory()  # as every job does (dswm.pipeline.setup.init_process)
+    prepare_process(args.threads)   # as every job does (dswm.pipeline.setup.init_process)
     options, source = demo_options()
     core = demo_core(days=16)
     core.day_ids = np.arange(core.n_days)

@@ -156,12 +156,12 @@ def measure_item(item: str, *, tree: Path, tensor_dir: Path, profile: str, quick
     from prep.tensor import load
 
     try:   # as every job does (dswm.pipeline.setup.init_process); a tree from before subnormal flushing does not
-        from dswm.pipeline.subnormals import flush_subnormals
-    except ModuleNotFoundError:
+        from dswm.pipeline.setup import prepare_process
+    except ImportError:
         flushed = False
+        keep_freed_memory()
     else:
-        flushed = flush_subnormals()
-    keep_freed_memory()
+        flushed = prepare_process(1)
     settings = resolved(tree, profile)
     tensor = load(tensor_dir)
     record = tensor_dir.parents[1] / "calibration" / "demand_intensity.json"

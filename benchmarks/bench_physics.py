@@ -11,8 +11,7 @@ import dataclasses
 import torch
 
 from _timing import spread_ms, write
-from dswm.pipeline.allocator import keep_freed_memory
-from dswm.pipeline.subnormals import flush_subnormals
+from dswm.pipeline.setup import prepare_process
 from dswm.sim.env import default_scenario
 from dswm.sim.physics import ServiceParams, associate, path_loss_db, served_ratio
 
@@ -41,9 +40,7 @@ def main() -> None:
     ap.add_argument("--side", type=int, default=20, help="grid side; G = side^2")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    flush_subnormals()
-    keep_freed_memory()   # as every job does (dswm.pipeline.setup.init_process)
+    prepare_process(args.threads)   # as every job does (dswm.pipeline.setup.init_process)
     gen = torch.Generator().manual_seed(0)
     side, cell = args.side, 235.0
     r, c = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")

@@ -28,8 +28,7 @@ import torch
 import yaml
 
 from _timing import RESULTS, spread_ms, write
-from dswm.pipeline.allocator import keep_freed_memory
-from dswm.pipeline.subnormals import flush_subnormals
+from dswm.pipeline.setup import prepare_process
 from dswm.methods.dswm.agent import DSWMController
 from dswm.methods.dswm.settings import resolve as dswm_settings
 from dswm.sim.scenario import load_scenario
@@ -183,9 +182,7 @@ def main() -> None:
     ap.add_argument("--slots", type=int, default=8, help="timed slots per setting")
     ap.add_argument("--train-steps", type=int, default=20)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    flush_subnormals()
-    keep_freed_memory()   # as every job does (dswm.pipeline.setup.init_process)
+    prepare_process(args.threads)   # as every job does (dswm.pipeline.setup.init_process)
     load0 = __import__("os").getloadavg()[0]
     cfg = yaml.safe_load((RESULTS.parents[1] / "config.yaml").read_text())
     scenario = load_scenario(RESULTS.parents[1] / "config.yaml", standin=True)  # u: the demo calibration

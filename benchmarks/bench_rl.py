@@ -32,8 +32,7 @@ from _timing import rate, timed, write
 from bench_env import demo_core
 from dswm.config import load_yaml, to_plain
 from dswm.methods.registry import load_class
-from dswm.pipeline.allocator import keep_freed_memory
-from dswm.pipeline.subnormals import flush_subnormals
+from dswm.pipeline.setup import prepare_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -151,9 +150,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--name", default=None, help="result name (default rl_cpu_t<threads>)")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    flush_subnormals()
-    keep_freed_memory()   # as every job does (dswm.pipeline.setup.init_process)
+    prepare_process(args.threads)   # as every job does (dswm.pipeline.setup.init_process)
     core = demo_core(days=16)
     n_envs = getattr(demo_options(args.methods[0], ENTRIES[args.methods[0]])[1], "n_envs", 8)
     result = {"grid": [core.grid.rows, core.grid.cols], "n_uavs": core.scenario.n_uavs, "rounds": args.rounds,

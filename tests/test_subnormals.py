@@ -1,6 +1,6 @@
 """Every job flushes subnormal floats to zero (dswm.pipeline.subnormals), on its own thread and on the worker
-threads started after it. The check runs in a fresh interpreter: the mode is a property of the process's threads, which
-the tests keep at the CPU's default (conftest.subnormals_kept)."""
+threads started after it. The check runs in a fresh interpreter: the mode is a property of the process's threads,
+which the tests keep at the CPU's default (conftest.subnormals_kept)."""
 import json
 import subprocess
 import sys
@@ -32,7 +32,7 @@ def test_a_job_process_computes_a_subnormal_product_as_zero_on_every_thread_and_
     assert got["parallel_nonzero"] == 0 and got["threads"] == 2
 
 
-def test_a_job_run_in_this_process_turns_it_on_and_every_call_does_so_again(monkeypatch):
+def test_a_job_run_in_this_process_turns_it_on_and_every_call_does_so_again():
     from dswm.pipeline.subnormals import flush_subnormals
 
     tiny = lambda: float((torch.tensor([1e-39]) * 2.0).item())  # noqa: E731

@@ -76,12 +76,19 @@ def log_demand_input(run: tracking.JobRun, tensor_dir: str | Path, dataset: str,
     return digest
 
 
-def init_process(runtime: Runtime | EvaluationSettings) -> None:
-    """Flush subnormal floats to zero (before any worker thread starts: they inherit it), set torch's threads
-    (``runtime.torch_threads``) and keep freed tensor memory in the heap."""
-    flush_subnormals()
-    torch.set_num_threads(runtime.torch_threads)
+def prepare_process(threads: int) -> bool:
+    """Flush subnormal floats to zero (before any worker thread starts: they inherit it), set torch's ``threads``
+    and keep freed tensor memory in the heap: every job's process (:func:`init_process`) and every benchmark's.
+    Returns whether subnormals are flushed (False where the CPU has no such mode)."""
+    flushed = flush_subnormals()
+    torch.set_num_threads(threads)
     keep_freed_memory()
+    return flushed
+
+
+def init_process(runtime: Runtime | EvaluationSettings) -> None:
+    """:func:`prepare_process` with ``runtime.torch_threads``."""
+    prepare_process(runtime.torch_threads)
 
 
 @dataclasses.dataclass(frozen=True)
