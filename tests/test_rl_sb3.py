@@ -21,7 +21,8 @@ from dswm.methods.base import DayContext
 from dswm.methods.rl.spaces import (FlatFleetEnv, flat_action, flat_observation, fleet_action, observation_dim,
                                     observation_space)
 from dswm.methods.rl.vec_env import FleetVecEnv
-from dswm.methods.rl.sac_train import SAC
+from dswm.methods.matmul import MatmulLinear, forget_casts, keep_casts, linear, set_matmul_dtype
+from dswm.methods.rl.sac_train import SAC, ReplayBuffer
 from dswm.methods.rl.sb3 import CHECKPOINT, PPOController, SACController
 from dswm.sim.core import FleetCore, Grid, fleet_state_from_obs, initial_positions
 from dswm.sim.env import UAVFleetEnv, UAVFleetParallelEnv, synthetic_demand
@@ -404,6 +405,7 @@ def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small)
     torch.set_num_threads(1)
     kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
     kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class")
+    kwargs["replay_buffer_kwargs"] = {"handle_timeout_termination": True}
 
     def build(cls, **extra):
         return cls("MlpPolicy", FleetVecEnv(make_core(small), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
@@ -429,3 +431,70 @@ def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small)
     half, _ = runs["bfloat16"]
     assert half == pytest.approx(want, rel=0.02)
     assert half["critic_loss"] != want["critic_loss"]  # the bfloat16 products were used
+
+
+def test_sac_bfloat16_step_with_its_bfloat16_buffer_is_sb3s_step_with_bfloat16_layers(small):
+    """With bfloat16 products dswm's SAC stores the observations rounded to bfloat16, rounds each weight once per
+    change and computes no gradient for the critics' observation columns; it computes what SB3's own train()
+    computes with every Linear layer's product in bfloat16 (``set_matmul_dtype`` on its policy), from the same
+    weights, transitions and random draws: the same losses and weights (bit for bit here; the float32 test's
+    tolerance, for the last bits of float kernels on other CPUs)."""
+    torch.set_num_threads(1)
+    kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
+    kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class"), kwargs.pop("replay_buffer_kwargs")
+
+    def build(cls, **extra):
+        return cls("MlpPolicy", FleetVecEnv(make_core(small), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
+                   **kwargs, **extra)
+
+    reference = build(SB3SAC, replay_buffer_kwargs={"handle_timeout_termination": True})
+    reference.learn(total_timesteps=2 * HORIZON)
+    set_matmul_dtype(reference.policy, "bfloat16")
+    fast = build(SAC, matmul_dtype="bfloat16", replay_buffer_class=ReplayBuffer,
+                 replay_buffer_kwargs={"handle_timeout_termination": True, "observation_dtype": "bfloat16"})
+    fast.policy.load_state_dict(reference.policy.state_dict())
+    src, dst = reference.replay_buffer, fast.replay_buffer
+    assert dst.observations.dtype == np.uint16 and dst.observations.nbytes * 2 == src.observations.nbytes
+    for i in range(src.pos):  # the same transitions, through the buffer's own add
+        dst.add(src.observations[i], src.next_observations[i], src.actions[i], src.rewards[i], src.dones[i],
+                [{"TimeLimit.truncated": bool(t)} for t in src.timeouts[i]])
+    np.testing.assert_array_equal(dst.timeouts[:dst.pos], src.timeouts[:src.pos])
+    sample = dst.sample(5)
+    assert sample.observations.dtype == sample.next_observations.dtype == torch.bfloat16
+    stored = torch.from_numpy(dst.observations[:dst.pos]).view(torch.bfloat16)
+    torch.testing.assert_close(stored, torch.from_numpy(src.observations[:src.pos]).bfloat16(), rtol=0, atol=0)
+    want, want_weights = sac_losses_after_steps(reference, 3)
+    got, got_weights = sac_losses_after_steps(fast, 3)
+    assert got == pytest.approx(want, rel=1e-6)
+    for name, value in want_weights.items():
+        torch.testing.assert_close(got_weights[name], value, rtol=1e-6, atol=1e-7, msg=name)
+    assert all(sub._low_weight is None and not sub.keep_cast for sub in fast.policy.modules()
+               if isinstance(sub, MatmulLinear))  # no rounded copy outlives the step
+
+
+def test_matmul_linear_keeps_its_rounded_weight_until_told_and_its_gradients_are_linears():
+    """A MatmulLinear keeping its cast reuses the rounded weight after the weight changes (the owner must call
+    forget_casts), and its product and gradients (forward and forward_tail) equal matmul.linear's."""
+    torch.manual_seed(0)
+    layer = set_matmul_dtype(torch.nn.Sequential(torch.nn.Linear(7, 5)), "bfloat16")[0]
+    x_fixed, tail = torch.randn(4, 4), torch.randn(4, 3, requires_grad=True)
+    x = torch.cat([x_fixed, tail], dim=1)
+    want = linear(x, layer.weight, layer.bias, torch.bfloat16)
+    want.square().sum().backward()
+    want_grads = (tail.grad.clone(), layer.weight.grad.clone(), layer.bias.grad.clone())
+    tail.grad = None
+    layer.zero_grad(set_to_none=True)
+    keep_casts(layer, True)
+    got = layer.forward_tail(torch.cat([x_fixed, tail.detach()], dim=1).bfloat16(), tail)
+    got.square().sum().backward()
+    assert torch.equal(got, want)
+    for g, w in zip((tail.grad, layer.weight.grad, layer.bias.grad), want_grads):
+        assert torch.equal(g, w)
+    with torch.no_grad():
+        layer.weight.add_(1.0)
+    assert torch.equal(layer(x), got)  # the kept cast: stale until forgotten
+    forget_casts(layer)
+    assert torch.equal(layer(x), linear(x, layer.weight, layer.bias, torch.bfloat16))
+    assert not torch.equal(layer(x), got)
+    keep_casts(layer, False)
+    assert layer._low_weight is None

@@ -34,13 +34,93 @@ def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = No
     return y if bias is None else y + bias
 
 
+class _Product(torch.autograd.Function):
+    """``x @ weight.T`` in the dtype of ``low_weight`` (``weight`` rounded to it, kept by the caller), returned as
+    float32: :func:`linear`'s product and gradients, value for value, without rounding ``weight`` again.
+
+    ``x_low``, when given, is the input already rounded whose last columns are ``x`` rounded: the product reads
+    it, and only ``x``'s columns get a gradient (a critic's observation beside its action).
+
+    The backward pass computes what autograd computes for :func:`linear`: the output's gradient rounded to the
+    low dtype, ``grad @ W`` for the input and ``grad.T @ x`` for the weight, returned as float32 (the input's
+    gradient in the input's dtype)."""
+
+    @staticmethod
+    def forward(ctx, x_low, x, weight, low_weight):
+        if x_low is None:
+            x_low = x.to(low_weight.dtype)
+        ctx.save_for_backward(x_low, low_weight)
+        ctx.first = x_low.shape[1] - x.shape[1]
+        ctx.x_dtype = x.dtype
+        return nn.functional.linear(x_low, low_weight).float()
+
+    @staticmethod
+    def backward(ctx, grad):
+        x_low, low_weight = ctx.saved_tensors
+        grad_low = grad.to(low_weight.dtype)
+        grad_x = grad_weight = None
+        if ctx.needs_input_grad[1]:
+            w = low_weight if ctx.first == 0 else low_weight[:, ctx.first:]
+            grad_x = grad_low.mm(w).to(ctx.x_dtype)
+        if ctx.needs_input_grad[2]:
+            grad_weight = grad_low.t().mm(x_low).float()
+        return None, grad_x, grad_weight, None
+
+
 class MatmulLinear(nn.Linear):
-    """``nn.Linear`` with its product in ``matmul_dtype`` (:func:`linear`); the same parameters and state dict."""
+    """``nn.Linear`` with its product in ``matmul_dtype`` (:func:`linear`); the same parameters and state dict.
+
+    Between :func:`keep_casts` ``(module, True)`` and ``(module, False)`` a low-precision layer rounds its weight
+    once and reuses the rounded copy until :func:`forget_casts` drops it: the owner of the weight calls that after
+    every change of the weight (an optimizer step, a Polyak update), which nothing else can detect (torch's fused
+    Adam updates a parameter without bumping its version counter)."""
 
     matmul_dtype: torch.dtype = torch.float32
+    keep_cast: bool = False
+    _low_weight: torch.Tensor | None = None
+
+    def low_weight(self) -> torch.Tensor:
+        """The weight rounded to ``matmul_dtype``, detached (the kept copy while casts are kept)."""
+        if self._low_weight is not None:
+            return self._low_weight
+        w = self.weight.detach().to(self.matmul_dtype)
+        if self.keep_cast:
+            self._low_weight = w
+        return w
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return linear(x, self.weight, self.bias, self.matmul_dtype)
+        if self.matmul_dtype == torch.float32 or not self.keep_cast:
+            return linear(x, self.weight, self.bias, self.matmul_dtype)
+        return self._bias(_Product.apply(None, x, self.weight, self.low_weight()))
+
+    def forward_tail(self, x_low: torch.Tensor, tail: torch.Tensor) -> torch.Tensor:
+        """The layer on ``x_low``, its whole input already in ``matmul_dtype``, whose last columns are ``tail``
+        rounded to it; the gradient goes to ``tail`` only (a critic's observation, which needs none, beside its
+        action). The same values as ``forward`` on that input."""
+        if x_low.dtype != self.matmul_dtype:
+            raise ValueError(f"forward_tail: expected the input in {self.matmul_dtype}, found {x_low.dtype}")
+        if self.matmul_dtype == torch.float32:
+            return self.forward(torch.cat([x_low[:, :x_low.shape[1] - tail.shape[1]], tail], dim=1))
+        return self._bias(_Product.apply(x_low, tail, self.weight, self.low_weight()))
+
+    def _bias(self, y: torch.Tensor) -> torch.Tensor:
+        return y if self.bias is None else y + self.bias
+
+
+def keep_casts(module: nn.Module, keep: bool) -> None:
+    """Let every :class:`MatmulLinear` of ``module`` keep its rounded weight (``keep``) or not; either way the
+    copies kept so far are dropped."""
+    for sub in module.modules():
+        if isinstance(sub, MatmulLinear):
+            sub.keep_cast = keep
+            sub._low_weight = None
+
+
+def forget_casts(module: nn.Module) -> None:
+    """Drop the rounded weights kept by ``module``'s layers: call after every change of its parameters."""
+    for sub in module.modules():
+        if isinstance(sub, MatmulLinear):
+            sub._low_weight = None
 
 
 def set_matmul_dtype(module: nn.Module, name: str) -> nn.Module:

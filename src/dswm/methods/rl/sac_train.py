@@ -5,9 +5,13 @@ changes only how a gradient step is computed, at the paper's sizes a 2,914-wide 
 
 * the critics' parameters are frozen while the actor's loss is differentiated: SB3 computes their gradients
   there too and throws them away at the next critic step (the most expensive part of that backward pass);
-* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`); the critics'
-  input [s, a] is built once per evaluation in that dtype (the actor reads float32 observations: SB3's
-  preprocessing would convert them back);
+* every Linear layer computes its product in ``matmul_dtype`` (:mod:`dswm.methods.matmul`). With bfloat16:
+  the replay buffer stores the observations already rounded to bfloat16 (every product that reads them rounds
+  them so; half the memory), and the actor and the critics read them as they are (SB3's preprocessing would
+  convert them to float32 and back); each layer rounds its weight once after each change of it instead of
+  once per use; the critics' first layer takes [s, a] as the fixed observation beside the action, so the
+  actor's loss computes no gradient for the observation's columns. The values are those of the plain
+  bfloat16 step (tests/test_rl_sb3.py);
 * (set by ``SACController`` through SB3's ``optimizer_kwargs``) the actor's and the critics' optimizers are
   torch's fused Adam (``fused=True``: one pass over the parameters instead of a dozen; the same update up to
   rounding);
@@ -24,15 +28,44 @@ import stable_baselines3
 import torch
 from stable_baselines3.common.buffers import ReplayBuffer as SB3ReplayBuffer
 from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN
 from torch.nn import functional as F
 
-from dswm.methods.matmul import MATMUL_DTYPES, set_matmul_dtype
+from dswm.methods.matmul import MATMUL_DTYPES, forget_casts, keep_casts, set_matmul_dtype
 
 
 class ReplayBuffer(SB3ReplayBuffer):
-    """SB3's replay buffer; a sample's arrays (fresh copies made by numpy's indexing) become tensors in place."""
+    """SB3's replay buffer; a sample's arrays (fresh copies made by numpy's indexing) become tensors in place.
+
+    Args:
+        observation_dtype: ``"float32"`` (SB3's) or ``"bfloat16"``: the observations (and next observations) are
+            stored rounded to bfloat16 (their bits in a uint16 array; torch's rounding, to nearest even) and
+            sampled as bfloat16 tensors.
+        Other arguments: SB3's.
+    """
+
+    def __init__(self, *args, observation_dtype: str = "float32", **kwargs):
+        super().__init__(*args, **kwargs)
+        if observation_dtype not in MATMUL_DTYPES:
+            raise ValueError(f"observation_dtype: expected one of {sorted(MATMUL_DTYPES)}, found {observation_dtype!r}")
+        self.observation_dtype = observation_dtype
+        if observation_dtype == "bfloat16":
+            self.observations = np.zeros(self.observations.shape, dtype=np.uint16)
+            if not self.optimize_memory_usage:
+                self.next_observations = np.zeros(self.next_observations.shape, dtype=np.uint16)
+
+    def _stored(self, obs: np.ndarray) -> np.ndarray:
+        if self.observations.dtype != np.uint16:
+            return obs
+        t = torch.from_numpy(np.ascontiguousarray(obs, dtype=np.float32)).to(torch.bfloat16)
+        return t.view(torch.int16).numpy().view(np.uint16)
+
+    def add(self, obs, next_obs, action, reward, done, infos) -> None:
+        super().add(self._stored(obs), self._stored(next_obs), action, reward, done, infos)
 
     def to_torch(self, array: np.ndarray, copy: bool = True) -> torch.Tensor:
+        if array.dtype == np.uint16:  # stored observations: bfloat16 bits
+            return torch.from_numpy(array).view(torch.bfloat16).to(self.device)
         return torch.as_tensor(array, device=self.device)
 
 
@@ -61,8 +94,21 @@ class SAC(stable_baselines3.SAC):
         """(N, n_critics) Q(s, a) of ``critic``'s networks on ``features`` (the flat observations, already in the
         products' dtype) and ``actions``: SB3's ``ContinuousCritic.forward`` with the input [s, a] built once in
         that dtype."""
-        x = torch.cat([features, actions.to(features.dtype)], dim=1)
-        return torch.cat([q_net(x) for q_net in critic.q_networks], dim=1)
+        if self.matmul_dtype == "float32":
+            x = torch.cat([features, actions], dim=1)
+            return torch.cat([q_net(x) for q_net in critic.q_networks], dim=1)
+        x = torch.cat([features, actions.detach().to(features.dtype)], dim=1)
+        return torch.cat([q_net[1:](q_net[0].forward_tail(x, actions)) for q_net in critic.q_networks], dim=1)
+
+    def _actor_log_prob(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SB3's ``actor.action_log_prob(obs)`` on observations as sampled (bfloat16 ones are not converted to
+        float32 first: the first product rounds its input to bfloat16 anyway)."""
+        actor = self.actor
+        if obs.dtype == torch.float32:
+            return actor.action_log_prob(obs)
+        latent_pi = actor.latent_pi(actor.features_extractor(obs))
+        log_std = torch.clamp(actor.log_std(latent_pi), LOG_STD_MIN, LOG_STD_MAX)
+        return actor.action_dist.log_prob_from_params(actor.mu(latent_pi), log_std)
 
     def _polyak(self) -> None:
         with torch.no_grad():
@@ -78,6 +124,23 @@ class SAC(stable_baselines3.SAC):
         self._update_learning_rate(optimizers)
         ent_coef_losses, ent_coefs, actor_losses, critic_losses = [], [], [], []
         dtype = MATMUL_DTYPES[self.matmul_dtype]
+        keep_casts(self.policy, True)
+        try:
+            self._train_steps(gradient_steps, batch_size, dtype, ent_coef_losses, ent_coefs, actor_losses,
+                              critic_losses)
+        finally:
+            keep_casts(self.policy, False)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/ent_coef", np.mean(ent_coefs))
+        self.logger.record("train/actor_loss", np.mean(actor_losses))
+        self.logger.record("train/critic_loss", np.mean(critic_losses))
+        if len(ent_coef_losses) > 0:
+            self.logger.record("train/ent_coef_loss", np.mean(ent_coef_losses))
+
+    def _train_steps(self, gradient_steps: int, batch_size: int, dtype: torch.dtype, ent_coef_losses: list,
+                     ent_coefs: list, actor_losses: list, critic_losses: list) -> None:
+        """``gradient_steps`` of SB3's step, appending each step's losses and coefficient to the lists."""
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
             # The critics' observations in the products' dtype
@@ -86,7 +149,7 @@ class SAC(stable_baselines3.SAC):
             if self.use_sde:
                 self.actor.reset_noise()
             # Action by the current actor for the sampled state
-            actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
+            actions_pi, log_prob = self._actor_log_prob(replay_data.observations)
             log_prob = log_prob.reshape(-1, 1)
             # Entropy coefficient
             ent_coef_loss = None
@@ -103,7 +166,7 @@ class SAC(stable_baselines3.SAC):
                 self.ent_coef_optimizer.step()
             # Critic: TD target from the target critics, the actor's next action and its entropy
             with torch.no_grad():
-                next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+                next_actions, next_log_prob = self._actor_log_prob(replay_data.next_observations)
                 next_q_values = self._q(self.critic_target, next_obs, next_actions)
                 next_q_values, _ = torch.min(next_q_values, dim=1, keepdim=True)
                 next_q_values = next_q_values - ent_coef * next_log_prob.reshape(-1, 1)
@@ -114,6 +177,7 @@ class SAC(stable_baselines3.SAC):
             self.critic.optimizer.zero_grad()
             critic_loss.backward()
             self.critic.optimizer.step()
+            forget_casts(self.critic)
             # Actor: through the updated critics, whose parameters get no gradient here
             self.critic.requires_grad_(False)
             min_qf_pi, _ = torch.min(self._q(self.critic, obs, actions_pi), dim=1, keepdim=True)
@@ -123,14 +187,9 @@ class SAC(stable_baselines3.SAC):
             actor_loss.backward()
             self.critic.requires_grad_(True)
             self.actor.optimizer.step()
+            forget_casts(self.actor)
             # Targets
             if gradient_step % self.target_update_interval == 0:
                 self._polyak()
+                forget_casts(self.critic_target)
                 polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/ent_coef", np.mean(ent_coefs))
-        self.logger.record("train/actor_loss", np.mean(actor_losses))
-        self.logger.record("train/critic_loss", np.mean(critic_losses))
-        if len(ent_coef_losses) > 0:
-            self.logger.record("train/ent_coef_loss", np.mean(ent_coef_losses))

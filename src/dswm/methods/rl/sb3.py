@@ -347,5 +347,6 @@ class SACController(SB3Controller):
                 "gradient_steps": s.gradient_steps,
                 "ent_coef": f"auto_{s.ent_coef_init}" if s.auto_entropy else s.ent_coef_init,
                 "optimize_memory_usage": False, "replay_buffer_class": ReplayBuffer,
-                "replay_buffer_kwargs": {"handle_timeout_termination": True}, "matmul_dtype": s.matmul_dtype,
+                "replay_buffer_kwargs": {"handle_timeout_termination": True, "observation_dtype": s.matmul_dtype},
+                "matmul_dtype": s.matmul_dtype,
                 "policy_kwargs": {"net_arch": {"pi": arch, "qf": list(arch)}, "optimizer_kwargs": {"fused": True}}}
