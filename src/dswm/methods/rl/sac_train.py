@@ -104,7 +104,7 @@ class SAC(stable_baselines3.SAC):
         """SB3's ``actor.action_log_prob(obs)`` on observations as sampled (bfloat16 ones are not converted to
         float32 first: the first product rounds its input to bfloat16 anyway)."""
         actor = self.actor
-        if obs.dtype == torch.float32:
+        if obs.dtype == torch.float32 or actor.use_sde:  # gSDE's noise needs SB3's own path
             return actor.action_log_prob(obs)
         latent_pi = actor.latent_pi(actor.features_extractor(obs))
         log_std = torch.clamp(actor.log_std(latent_pi), LOG_STD_MIN, LOG_STD_MAX)
