@@ -3,6 +3,7 @@ observation, FleetVecEnv's VecEnv contract, learning (losses on fixed batches), 
 TD targets that bootstrap at the day's truncation, actions, the manifest's days and seeds."""
 import copy
 import dataclasses
+import functools
 import warnings
 
 import numpy as np
@@ -387,6 +388,16 @@ def test_settings_name_the_bad_key(small, tmp_path):
 
 # ----------------------------------------------------------------------------------- the leaner SAC step
 
+def build_sac(scenario, cls, **extra):
+    """``cls`` (SB3's SAC or dswm's) with SACController's arguments on 2 training days of ``scenario``, no gradient
+    step before 10^6 transitions, SB3's float32 products and replay buffer unless ``extra`` says otherwise."""
+    kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6,
+              "replay_buffer_kwargs": {"handle_timeout_termination": True}}
+    kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class")
+    return cls("MlpPolicy", FleetVecEnv(make_core(scenario), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
+               **{**kwargs, **extra})
+
+
 def sac_losses_after_steps(model, n: int) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
     """The logged mean losses of ``n`` gradient steps from fixed random draws, and the policy's weights after."""
     model.set_logger(configure(None, []))
@@ -403,14 +414,7 @@ def test_sac_gradient_step_is_sb3s_in_float32_and_stays_close_in_bfloat16(small)
     one CPU; on another, with AMX, the weights differ by up to ~4e-9 after 3 steps, a difference in the last bits
     of float kernels whose place was not isolated); with bfloat16 products the losses within 2 %."""
     torch.set_num_threads(1)
-    kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
-    kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class")
-    kwargs["replay_buffer_kwargs"] = {"handle_timeout_termination": True}
-
-    def build(cls, **extra):
-        return cls("MlpPolicy", FleetVecEnv(make_core(small), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
-                   **kwargs, **extra)
-
+    build = functools.partial(build_sac, small)
     reference = build(SB3SAC)
     reference.learn(total_timesteps=2 * HORIZON)  # fills the buffer with random actions, no gradient step
     reference_start = {k: v.detach().clone() for k, v in reference.policy.state_dict().items()}
@@ -440,14 +444,8 @@ def test_sac_bfloat16_step_with_its_bfloat16_buffer_is_sb3s_step_with_bfloat16_l
     weights, transitions and random draws: the same losses and weights (bit for bit here; the float32 test's
     tolerance, for the last bits of float kernels on other CPUs)."""
     torch.set_num_threads(1)
-    kwargs = {**controller("sac").algorithm_kwargs(HORIZON), "learning_starts": 10 ** 6}
-    kwargs.pop("matmul_dtype"), kwargs.pop("replay_buffer_class"), kwargs.pop("replay_buffer_kwargs")
-
-    def build(cls, **extra):
-        return cls("MlpPolicy", FleetVecEnv(make_core(small), n_envs=2, seed=0), seed=0, device="cpu", verbose=0,
-                   **kwargs, **extra)
-
-    reference = build(SB3SAC, replay_buffer_kwargs={"handle_timeout_termination": True})
+    build = functools.partial(build_sac, small)
+    reference = build(SB3SAC)
     reference.learn(total_timesteps=2 * HORIZON)
     set_matmul_dtype(reference.policy, "bfloat16")
     fast = build(SAC, matmul_dtype="bfloat16", replay_buffer_class=ReplayBuffer,

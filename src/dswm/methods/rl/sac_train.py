@@ -48,8 +48,7 @@ class ReplayBuffer(SB3ReplayBuffer):
         super().__init__(*args, **kwargs)
         if observation_dtype not in MATMUL_DTYPES:
             raise ValueError(f"observation_dtype: expected one of {sorted(MATMUL_DTYPES)}, found {observation_dtype!r}")
-        self.observation_dtype = observation_dtype
-        if observation_dtype == "bfloat16":
+        if observation_dtype == "bfloat16":  # the arrays' dtype says how they are stored (_stored, to_torch)
             self.observations = np.zeros(self.observations.shape, dtype=np.uint16)
             if not self.optimize_memory_usage:
                 self.next_observations = np.zeros(self.next_observations.shape, dtype=np.uint16)
@@ -93,7 +92,8 @@ class SAC(stable_baselines3.SAC):
     def _q(self, critic, features: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """(N, n_critics) Q(s, a) of ``critic``'s networks on ``features`` (the flat observations, already in the
         products' dtype) and ``actions``: SB3's ``ContinuousCritic.forward`` with the input [s, a] built once in
-        that dtype."""
+        that dtype; in bfloat16 each network's first layer passes a gradient to the action's columns only
+        (``MatmulLinear.forward_tail``)."""
         if self.matmul_dtype == "float32":
             x = torch.cat([features, actions], dim=1)
             return torch.cat([q_net(x) for q_net in critic.q_networks], dim=1)
@@ -122,12 +122,9 @@ class SAC(stable_baselines3.SAC):
         if self.ent_coef_optimizer is not None:
             optimizers += [self.ent_coef_optimizer]
         self._update_learning_rate(optimizers)
-        ent_coef_losses, ent_coefs, actor_losses, critic_losses = [], [], [], []
-        dtype = MATMUL_DTYPES[self.matmul_dtype]
         keep_casts(self.policy, True)
         try:
-            self._train_steps(gradient_steps, batch_size, dtype, ent_coef_losses, ent_coefs, actor_losses,
-                              critic_losses)
+            ent_coef_losses, ent_coefs, actor_losses, critic_losses = self._train_steps(gradient_steps, batch_size)
         finally:
             keep_casts(self.policy, False)
         self._n_updates += gradient_steps
@@ -138,9 +135,11 @@ class SAC(stable_baselines3.SAC):
         if len(ent_coef_losses) > 0:
             self.logger.record("train/ent_coef_loss", np.mean(ent_coef_losses))
 
-    def _train_steps(self, gradient_steps: int, batch_size: int, dtype: torch.dtype, ent_coef_losses: list,
-                     ent_coefs: list, actor_losses: list, critic_losses: list) -> None:
-        """``gradient_steps`` of SB3's step, appending each step's losses and coefficient to the lists."""
+    def _train_steps(self, gradient_steps: int, batch_size: int) -> tuple[list, list, list, list]:
+        """``gradient_steps`` of SB3's step; each step's entropy-coefficient loss (with a learned coefficient),
+        coefficient, actor loss and critic loss, in four lists."""
+        ent_coef_losses, ent_coefs, actor_losses, critic_losses = [], [], [], []
+        dtype = MATMUL_DTYPES[self.matmul_dtype]
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
             # The critics' observations in the products' dtype
@@ -193,3 +192,4 @@ class SAC(stable_baselines3.SAC):
                 self._polyak()
                 forget_casts(self.critic_target)
                 polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+        return ent_coef_losses, ent_coefs, actor_losses, critic_losses
