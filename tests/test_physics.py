@@ -261,3 +261,28 @@ def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_inde
         far_d2 = ((cells[:5] - torch.tensor(far, dtype=dtype)) ** 2).sum(-1)
         assert torch.allclose(d2[1], far_d2) and not torch.allclose(d2[0], far_d2)
 
+
+
+def test_a_second_process_loads_the_compiled_association_kernel_from_the_cache(tmp_path):
+    """Every job is a process of its own: the first compiles the kernels (serial and parallel, float32), later ones
+    load them from numba's disk cache instead of compiling again (dswm.sim.kernels)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = ("import json, torch\n"
+            "from dswm.sim import kernels\n"
+            "pos = torch.rand(3, 4, 2) * 1000\n"
+            "for threads in (1, 2):\n"
+            "    torch.set_num_threads(threads)\n"
+            "    kernels._nearest(pos, torch.ones(3, 4, dtype=torch.bool), torch.rand(9, 2) * 1000)\n"
+            "stats = {f: getattr(kernels, f).stats for f in ('_nearest_serial', '_nearest_parallel')}\n"
+            "print(json.dumps({f: [sum(s.cache_hits.values()), sum(s.cache_misses.values())] "
+            "for f, s in stats.items()}))\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_NUM_THREADS": "2"}
+    runs = [json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout) for _ in range(2)]
+    assert runs[0] == {"_nearest_serial": [0, 1], "_nearest_parallel": [0, 1]}   # compiled and saved
+    assert runs[1] == {"_nearest_serial": [1, 0], "_nearest_parallel": [1, 0]}   # loaded, nothing compiled
+    assert any(p.suffix == ".nbi" for p in tmp_path.rglob("*"))
