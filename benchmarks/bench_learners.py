@@ -24,7 +24,8 @@ the selected profile (``--profile``, default ``paper``), resolved by the setting
   (``_decisions.time_decisions``, as ``bench_methods.py``).
 
 Every figure is a warm-up, then the median of at least 5 repeats with min and max. ``--quick`` times the fewest
-units (1 warm-up, 5 repeats of one unit, 5 planned slots): a check that every probe runs, not a benchmark. The
+units (1 warm-up, 5 repeats of one unit, 5 planned slots): a check that every probe runs, not a benchmark; with
+``--parallel 2`` two items' workers run at once (the JSON records it), which halves a check's wall time. The
 counts are sized to keep a run under ~15 min on an idle core (GA-MATR's rounds and EMORL-TCTO's tasks are the
 longest units); ``--baseline`` doubles it.
 
@@ -43,6 +44,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -264,20 +266,28 @@ def orchestrate(args) -> dict:
             sides["baseline"] = base
         try:
             trees = {side: tree_record(tree) for side, tree in sides.items()}
-            results: dict[str, dict] = {}
-            for i, item in enumerate(args.items):
+
+            def measure(i: int, item: str) -> dict:
                 order = list(sides) if i % 2 == 0 else list(reversed(sides))
-                results[item] = {}
+                by_side = {}
                 for side in order:
                     try:
-                        results[item][side] = run_side(item, side, sides[side], args, scratch)
+                        by_side[side] = run_side(item, side, sides[side], args, scratch)
                     except ItemFailed as exc:   # the other items still run; the JSON names the failure
                         print(exc, file=sys.stderr, flush=True)
-                        results[item][side] = {"error": str(exc)}
+                        by_side[side] = {"error": str(exc)}
+                return by_side
+
+            # Items one after another (each worker alone on the machine: its rates mean something), or --parallel
+            # at once where the run only checks that every probe runs (tests/test_bench_tools.py).
+            with ThreadPoolExecutor(max_workers=args.parallel) as pool:
+                futures = {item: pool.submit(measure, i, item) for i, item in enumerate(args.items)}
+            results = {item: future.result() for item, future in futures.items()}
         finally:
             if args.baseline:
                 git("worktree", "remove", "--force", str(sides["baseline"]))
-    payload = {"profile": args.profile, "quick": args.quick, "tensor": str(args.tensor), "threads": 1,
+    payload = {"profile": args.profile, "quick": args.quick, "parallel": args.parallel, "tensor": str(args.tensor),
+               "threads": 1,
                "load_avg_1min_start": args.load0, "trees": trees,
                "learners": {n: compare(n, results[n]["current"], results[n].get("baseline"))
                             for n in LEARNERS if n in results}}
@@ -304,6 +314,9 @@ def main() -> None:
     ap.add_argument("--tensor", type=Path, default=Path("results/data/milan"), help="a prepared tensor directory")
     ap.add_argument("--profile", default="paper", help="the config profile whose sizes are measured")
     ap.add_argument("--quick", action="store_true", help="fewest units: a check that every probe runs")
+    ap.add_argument("--parallel", type=int, default=1, metavar="N",
+                    help="run N items' workers at once (default 1: each alone, as timings need; more only for a "
+                         "check that every probe runs, whose rates then share the machine)")
     ap.add_argument("--baseline", metavar="REV", help="also measure git revision REV, side by side")
     ap.add_argument("--items", nargs="+", default=list(ITEMS), choices=ITEMS, help="what to measure (default all)")
     ap.add_argument("--out", type=Path, default=None, help="result file (default benchmarks/results/"
@@ -320,6 +333,8 @@ def main() -> None:
                               quick=args.quick)
         args.out.write_text(json.dumps(result, indent=2) + "\n")
         return
+    if args.parallel < 1:
+        raise SystemExit(f"bench_learners: --parallel must be at least 1, found {args.parallel}")
     args.load0 = os.getloadavg()[0]
     payload = orchestrate(args)
     from _timing import write_to
