@@ -23,6 +23,9 @@ from conftest import ROOT
 GRID = Grid(rows=6, cols=6, cell_m=235.0)
 SETTINGS = CeilingSettings(sweeps=4, lattice=9, keep=2, refine=3, chains=2, fresh=1, polish=0,
                            bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
+LIGHT = dataclasses.replace(SETTINGS, sweeps=2, lattice=5, refine=1)
+"""For the tests that evaluate whole days: every stage of the search (chains, keep, fresh) runs, in a third of the
+time."""
 SEARCH = SearchSettings(sweeps=2, lattice=7, refine=2, bw_logits=[-1.0, -0.5, 0.0, 0.5, 1.0])
 
 
@@ -189,7 +192,7 @@ def test_the_evaluation_of_the_ceiling_writes_a_result_like_the_others_without_e
     scn = make_scenario(n_uavs=3, demand_intensity=150.0)
     t = toy_tensor()
     kw = dict(tensor=t, scenario=scn, seed=0, limits={"id": 1, "ood": 1}, profile="smoke", **RUN)
-    res = evaluate(controller=CeilingController(name="ceiling", options=SETTINGS), **kw)
+    res = evaluate(controller=CeilingController(name="ceiling", options=LIGHT), **kw)
     static = evaluate(controller=StaticController(name="static"), **kw).days
     days = res.days
     assert days.columns == static.columns and days.schema == static.schema
@@ -199,7 +202,7 @@ def test_the_evaluation_of_the_ceiling_writes_a_result_like_the_others_without_e
     np.testing.assert_allclose(res.trajectories["id_pos"][0], core_from_tensor(t, scn, [3]).init_pos.numpy())
     assert (res.trajectories["id_status"] == 0).all()
     # deterministic: another seed gives the same numbers
-    again = evaluate(controller=CeilingController(name="ceiling", seed=5, options=SETTINGS), **{**kw, "seed": 5}).days
+    again = evaluate(controller=CeilingController(name="ceiling", seed=5, options=LIGHT), **{**kw, "seed": 5}).days
     assert again["sr_mean"].to_list() == days["sr_mean"].to_list()
     record = {"method": "ceiling", "train_source": None, "model": None, "model_sha256": None, "train_manifest": None}
     write_days(days, tmp_path / "days.parquet", record,
@@ -226,7 +229,7 @@ def test_a_days_ceiling_depends_on_that_day_alone_not_on_the_days_evaluated_besi
     t.demand[:] *= np.random.default_rng(1).random(t.demand.shape) < 0.3
     kw = dict(tensor=t, scenario=scn, seed=0, limits={"id": None, "ood": None}, profile="smoke", **RUN)
     def ceiling(days):
-        return evaluate(controller=CeilingController(name="ceiling", options=SETTINGS), **{**kw, "days": days}).days
+        return evaluate(controller=CeilingController(name="ceiling", options=LIGHT), **{**kw, "days": days}).days
 
     together = ceiling({"id": [3, 4]})
     for row in together.iter_rows(named=True):
