@@ -156,7 +156,8 @@ def test_quick_benchmark_on_the_smoke_tensor_writes_every_learner(smoke_tables, 
     out = tmp_path / "learners.json"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT)])}
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_learners.py"), "--quick",
-                           "--parallel", "2", "--profile", "smoke", "--tensor", str(smoke_tables / "results" / "data" / "milan"),
+                           "--parallel", "2", "--profile", "smoke",
+                           "--tensor", str(smoke_tables / "results" / "data" / "milan"),
                            "--out", str(out)], env=env, capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(out.read_text())

@@ -13,8 +13,9 @@ distance for distance (``tests/test_physics.py`` checks it).
 Compiling the kernels costs a fresh process ~2 s for its first input dtype and ~1.3 s for another on this project's
 2-core machine, and every job of the workflow is a process of its own: numba caches the compiled code on disk
 (``cache=True``), in ``__pycache__`` beside this file (where Python keeps its bytecode; numba's user-wide cache
-directory where that is not writable, ``NUMBA_CACHE_DIR`` where set). A later process loads it in ~0.3 s. The cache is keyed by this file's time stamp,
-the numba version and the CPU, and written by rename, so jobs starting side by side do not read a half-written one.
+directory where that is not writable, ``NUMBA_CACHE_DIR`` where set). A later process loads it in ~0.3 s. The
+cache is keyed by this file's time stamp, the numba version and the CPU, and written by rename, so jobs starting
+side by side do not read a half-written one.
 Nothing under ``results/`` is written, so the read-only audit is unaffected.
 """
 from __future__ import annotations
