@@ -287,8 +287,7 @@ def orchestrate(args) -> dict:
             if args.baseline:
                 git("worktree", "remove", "--force", str(sides["baseline"]))
     payload = {"profile": args.profile, "quick": args.quick, "parallel": args.parallel, "tensor": str(args.tensor),
-               "threads": 1,
-               "load_avg_1min_start": args.load0, "trees": trees,
+               "threads": 1, "load_avg_1min_start": args.load0, "trees": trees,
                "learners": {n: compare(n, results[n]["current"], results[n].get("baseline"))
                             for n in LEARNERS if n in results}}
     if "environment" in results:

@@ -262,7 +262,6 @@ def test_association_is_the_nearest_available_uav_and_ties_go_to_the_lowest_inde
         assert torch.allclose(d2[1], far_d2) and not torch.allclose(d2[0], far_d2)
 
 
-
 def test_a_second_process_loads_the_compiled_association_kernel_from_the_cache(tmp_path):
     """Every job is a process of its own: the first compiles the kernels (serial and parallel, float32), later ones
     load them from numba's disk cache instead of compiling again (dswm.sim.kernels)."""
