@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import ROOT
@@ -14,6 +15,7 @@ from conftest import ROOT
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_learners  # noqa: E402
+import diagnose_emorl  # noqa: E402
 import project_paper as pp  # noqa: E402
 from dswm.config import load_yaml  # noqa: E402
 
@@ -152,6 +154,31 @@ def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
 
 
 @pytest.mark.integration
+def test_the_emorl_diagnosis_counts_lowered_tasks_and_the_executed_members_training():
+    """Two untrained policies (0, 1), their warm-up runs (2, 3), then three tasks (4 from 2, 5 from 4, 6 from 3);
+    the archive holds 4 and 5 and executes 4, which has its warm-up and one task behind it."""
+    def member(parent, sr):
+        return {"parent": parent, "objectives": np.array([sr, -0.75, 0.9])}
+
+    members = {0: member(None, 0.60), 1: member(None, 0.61), 2: member(0, 0.59), 3: member(1, 0.62),
+               4: member(2, 0.63), 5: member(4, 0.62), 6: member(3, 0.59)}
+    sr_only, mixed = np.array([1.0, 0.0, 0.0]), np.array([0.5, 0.5, 0.0])
+    tasks = [(0, sr_only, np.array([-0.01, 0, 0])), (1, mixed, np.array([0.01, 0, 0])),
+             (2, sr_only, np.array([0.04, 0, 0])), (4, mixed, np.array([-0.01, 0, 0])),
+             (3, sr_only, np.array([-0.03, 0, 0]))]
+    blob = {"members": members, "tasks": tasks, "archive": [4, 5], "num_timesteps": 50_000}
+    out = diagnose_emorl.summarize(blob, warmup_rounds=8, task_rounds=4, transitions_per_round=572)
+    assert out["warmup_tasks"] == 2 and out["warmup_sr_deltas"] == [-0.01, 0.01]
+    assert (out["later_tasks"], out["later_lowered"]) == (3, 2)
+    assert out["later_sr_delta_mean"] == 0.0
+    assert (out["served_ratio_alone_tasks"], out["served_ratio_alone_lowered"]) == (2, 1)
+    assert out["untrained_sr"] == [0.6, 0.61]
+    assert out["deepest_lineage_tasks"] == 3
+    assert out["executed_member"] == 4 and out["executed_lineage"] == [4, 2, 0]
+    assert (out["executed_rounds"], out["executed_transitions"]) == (12, 12 * 572)
+    assert out["run_transitions"] == 50_000
+
+
 def test_quick_benchmark_on_the_smoke_tensor_writes_every_learner(smoke_tables, tmp_path):
     out = tmp_path / "learners.json"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT)])}
