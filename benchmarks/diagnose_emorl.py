@@ -12,7 +12,8 @@ member's parent, so this script reads, without simulating:
 * how many tasks raised or lowered their parent's served ratio (all tasks, and those weighting served ratio alone);
 * the depth of every lineage (tasks from an untrained policy) and the executed member's depth, rounds and PPO
   transitions, against the run's total.
-One JSON object on standard output. The round counts come from the learning run's settings (``--profile``).
+One JSON object on standard output. The round counts and the executed member's rule (``select_rule``) come from
+the settings of the learning run's score job (``--profile``).
 """
 from __future__ import annotations
 
@@ -73,8 +74,11 @@ def main() -> None:
                          "checkpoint.pt")
     args = ap.parse_args()
     root = args.root.resolve()
-    s, _, learning, _ = learning_job(root, args.profile, "emorl_tcto", "train")
+    s, _, learning, _ = learning_job(root, args.profile, "emorl_tcto", "score")
     o = s.method.options
+    if o.select_rule != "best_served_ratio":
+        raise SystemExit(f"diagnose_emorl: select_rule is {o.select_rule!r}; this script names the executed member "
+                         "as best_served_ratio picks it")
     path = args.checkpoint or (root / "results" / "learning" / learning.dataset / "emorl_tcto"
                                / f"seed{learning.seed}" / "train" / "checkpoint.pt")
     if not path.is_file():
