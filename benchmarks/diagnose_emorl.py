@@ -6,9 +6,10 @@ Run (from a workflow root after `snakemake learning`, or any EMORL-TCTO train jo
 
 EMORL-TCTO (``dswm.methods.emorl_tcto``) trains a population of PPO policies: a warm-up run per starting policy, then
 tasks that continue an archive member (its parent) with PPO on a weighted objective for ``task_rounds`` rounds. A
-child enters the archive only where it is not dominated on the measured training days, and the member serving best
-there is executed. The checkpoint keeps every task as (parent id, weight, child minus parent objectives) and every
-member's parent, so this script reads, without simulating:
+child enters the archive only where it is not dominated on the measured training days, and the member that
+``select_rule`` names is executed (in config.yaml the one serving best there). The checkpoint keeps every task as
+(parent id, weight, child minus parent objectives) and every member's parent, so this script reads, without
+simulating:
 * how many tasks raised or lowered their parent's served ratio (all tasks, and those weighting served ratio alone);
 * the depth of every lineage (tasks from an untrained policy) and the executed member's depth, rounds and PPO
   transitions, against the run's total.
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 
 from _learning_job import learning_job
+from dswm.methods.emorl_tcto.archive import select_member
 
 SERVED_RATIO = 0  # index of the served ratio in the objective vectors (dswm.methods.emorl_tcto.objectives)
 
@@ -37,8 +39,11 @@ def lineage(members: dict, member: int) -> list[int]:
     return out
 
 
-def summarize(blob: dict, *, warmup_rounds: int, task_rounds: int, transitions_per_round: int) -> dict:
-    """The numbers of the module docstring from a checkpoint's ``blob``."""
+def summarize(blob: dict, *, warmup_rounds: int, task_rounds: int, transitions_per_round: int, rule: str,
+              weight=None) -> dict:
+    """The numbers of the module docstring from a checkpoint's ``blob``. The executed member is the one that
+    ``select_member`` picks with ``rule`` and ``weight`` (``select_rule``, ``select_weight``), as the controller
+    picks it."""
     members, tasks, archive = blob["members"], blob["tasks"], [int(i) for i in blob["archive"]]
     untrained = [i for i, m in members.items() if m["parent"] is None]
     deltas = np.array([np.asarray(d, dtype=float)[SERVED_RATIO] for _, _, d in tasks])
@@ -46,7 +51,7 @@ def summarize(blob: dict, *, warmup_rounds: int, task_rounds: int, transitions_p
     n_warm = len(untrained)       # the first tasks: one warm-up run from each untrained policy
     later, later_w = deltas[n_warm:], weights[n_warm:]
     alone = np.all(later_w == np.eye(later_w.shape[1])[SERVED_RATIO], axis=1)
-    executed = max(archive, key=lambda i: members[i]["objectives"][SERVED_RATIO])
+    executed = archive[select_member(np.array([members[i]["objectives"] for i in archive]), rule, weight)]
     chain = lineage(members, executed)
     rounds = warmup_rounds + task_rounds * (len(chain) - 2)      # chain: the member ... its warm-up, untrained
     return {
@@ -76,9 +81,6 @@ def main() -> None:
     root = args.root.resolve()
     s, _, learning, _ = learning_job(root, args.profile, "emorl_tcto", "score")
     o = s.method.options
-    if o.select_rule != "best_served_ratio":
-        raise SystemExit(f"diagnose_emorl: select_rule is {o.select_rule!r}; this script names the executed member "
-                         "as best_served_ratio picks it")
     path = args.checkpoint or (root / "results" / "learning" / learning.dataset / "emorl_tcto"
                                / f"seed{learning.seed}" / "train" / "checkpoint.pt")
     if not path.is_file():
@@ -86,7 +88,7 @@ def main() -> None:
     blob = torch.load(path, map_location="cpu", weights_only=False)
     days = s.scenario.slots_per_day - 1
     out = summarize(blob, warmup_rounds=o.warmup_rounds, task_rounds=o.task_rounds,
-                    transitions_per_round=o.n_envs * days)
+                    transitions_per_round=o.n_envs * days, rule=o.select_rule, weight=o.select_weight)
     print(json.dumps({"checkpoint": str(path), **out}))
 
 

@@ -153,7 +153,6 @@ def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
     assert failed["current"] is cur
 
 
-@pytest.mark.integration
 def test_the_emorl_diagnosis_counts_lowered_tasks_and_the_executed_members_training():
     """Two untrained policies (0, 1), their warm-up runs (2, 3), then three tasks (4 from 2, 5 from 4, 6 from 3);
     the archive holds 4 and 5 and executes 4, which has its warm-up and one task behind it."""
@@ -167,7 +166,8 @@ def test_the_emorl_diagnosis_counts_lowered_tasks_and_the_executed_members_train
              (2, sr_only, np.array([0.04, 0, 0])), (4, mixed, np.array([-0.01, 0, 0])),
              (3, sr_only, np.array([-0.03, 0, 0]))]
     blob = {"members": members, "tasks": tasks, "archive": [4, 5], "num_timesteps": 50_000}
-    out = diagnose_emorl.summarize(blob, warmup_rounds=8, task_rounds=4, transitions_per_round=572)
+    out = diagnose_emorl.summarize(blob, warmup_rounds=8, task_rounds=4, transitions_per_round=572,
+                                    rule="best_served_ratio")
     assert out["warmup_tasks"] == 2 and out["warmup_sr_deltas"] == [-0.01, 0.01]
     assert (out["later_tasks"], out["later_lowered"]) == (3, 2)
     assert out["later_sr_delta_mean"] == 0.0
@@ -179,6 +179,7 @@ def test_the_emorl_diagnosis_counts_lowered_tasks_and_the_executed_members_train
     assert out["run_transitions"] == 50_000
 
 
+@pytest.mark.integration
 def test_quick_benchmark_on_the_smoke_tensor_writes_every_learner(smoke_tables, tmp_path):
     out = tmp_path / "learners.json"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT)])}
