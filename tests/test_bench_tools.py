@@ -16,6 +16,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_learners  # noqa: E402
 import diagnose_emorl  # noqa: E402
+import gemm_ceiling  # noqa: E402
 import project_paper as pp  # noqa: E402
 from dswm.config import load_yaml  # noqa: E402
 
@@ -151,6 +152,29 @@ def test_a_side_by_side_run_records_each_learners_speedup_beside_its_goal():
     failed = bench_learners.compare("sac", cur, {"error": "bench_learners: sac in /b failed (exit 1)"})
     assert "speedup" not in failed and failed["baseline"]["error"].startswith("bench_learners: sac in /b failed")
     assert failed["current"] is cur
+
+
+def test_the_gemm_ceiling_counts_products_only_and_groups_units_as_the_benchmark_does():
+    """A unit's GEMM seconds are the self time of the product and convolution operators (microseconds summed over
+    repeated keys); repeats sum ``group`` units from ``head`` on; the ceiling is the baseline's repeat over them."""
+    class Event:
+        def __init__(self, key, us):
+            self.key, self.self_cpu_time_total = key, us
+
+    seconds, by_op = gemm_ceiling.gemm_seconds([Event("aten::mm", 30_000), Event("aten::addmm", 5_000),
+                                                Event("aten::mm", 10_000), Event("aten::copy_", 20_000),
+                                                Event("aten::convolution_backward", 4_000),
+                                                Event("aten::linear", 1_000)])
+    assert seconds == pytest.approx(0.049)
+    assert by_op["aten::mm"] == pytest.approx(0.04) and by_op["aten::copy_"] == pytest.approx(0.02)
+    per_unit = [None, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    assert gemm_ceiling.repeats(per_unit, head=2, repeats_=3, group=2) == [5.0, 9.0, 13.0]
+    with pytest.raises(RuntimeError, match="expected 6 profiled units from unit 0, found 5"):
+        gemm_ceiling.repeats(per_unit, head=0, repeats_=3, group=2)
+    row = gemm_ceiling.ceiling(baseline_s=6.0, current_s=2.5, gemm_s=1.5)
+    assert row == {"speedup": 2.4, "ceiling": 4.0, "gemm_share": 0.6, "other_s_now": 1.0, "other_s_at_goal": 0.5}
+    # a goal the products alone exceed: nothing is left for the rest
+    assert gemm_ceiling.ceiling(baseline_s=3.0, current_s=1.5, gemm_s=1.2)["other_s_at_goal"] == pytest.approx(-0.2)
 
 
 def test_the_emorl_diagnosis_counts_lowered_tasks_and_the_executed_members_training():
