@@ -153,7 +153,8 @@ def summarize(item: str, measured: dict, entry: dict, source: Path) -> dict:
     baseline_s = entry["baseline"][phase]["seconds_per_repeat"]["median_s"]
     gemm_s = measured["gemm_s_per_repeat"]["median_s"]
     rel = source.resolve().relative_to(ROOT) if source.resolve().is_relative_to(ROOT) else source
-    return {"rates_from": str(rel), "baseline_rev": entry["baseline_rev"], "phase": phase, "baseline_s_per_repeat": baseline_s,
+    return {"rates_from": str(rel), "baseline_rev": entry["baseline_rev"], "phase": phase,
+            "baseline_s_per_repeat": baseline_s,
             "current_s_per_repeat": current_s, **measured, **ceiling(baseline_s=baseline_s, current_s=current_s,
                                                                      gemm_s=gemm_s)}
 
