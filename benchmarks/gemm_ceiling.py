@@ -29,13 +29,14 @@ import sys
 import tempfile
 from pathlib import Path
 
+import bench_learners
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-ITEMS = ("sac", "maddpg", "tdmpc", "dswm_world_model")
-"""The learners with a 3x goal (the issue's list); their probes' phases of record in :data:`PHASE`."""
-PHASE = {"sac": ("rounds", "train"), "maddpg": ("rounds", "train"), "tdmpc": ("steps", "gradient"),
-         "dswm_world_model": ("steps", "gradient")}
-"""(the counts of ``bench_learners.counts``, the result's phase whose repeats they time) per item."""
+ITEMS = tuple(bench_learners.GOALS)
+"""The learners with a speed-up goal (``bench_learners.GOALS``)."""
+COUNTS = {"train": "rounds", "gradient": "steps"}
+"""The counts of ``bench_learners.counts`` that time each phase a headline rate (``bench_learners.HEADLINE``) is of."""
 GEMM_OPS = frozenset({"aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm", "aten::_addmm_activation",
                       "aten::mkldnn_convolution", "aten::convolution_backward", "aten::mkldnn_linear",
                       "mkldnn::_linear_pointwise", "mkldnn::_convolution_pointwise"})
@@ -70,9 +71,9 @@ def ceiling(*, baseline_s: float, current_s: float, gemm_s: float, goal: float =
 
 # ---- the worker: one item, profiled unit by unit --------------------------------------------------------------
 def profile_item(item: str, tensor_dir: Path, profile: str) -> dict:
-    sys.path.insert(0, str(HERE))
+    """The item's GEMM seconds per timed repeat, and the self seconds of the operators over every profiled unit
+    (``top_ops_s``, ``gemm_ops_s``: the warm-up's and, for TD-MPC, its own episodes' units included)."""
     import _learner_probes as P
-    import bench_learners
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as torch_profile
 
@@ -103,8 +104,8 @@ def profile_item(item: str, tensor_dir: Path, profile: str) -> dict:
         P.Recorder.step = original
         if state.get("prof") is not None:
             state["prof"].__exit__(None, None, None)
-    kind, phase = PHASE[item]
-    counts = bench_learners.counts(False)[kind]
+    phase = bench_learners.HEADLINE[item].split(".")[0]
+    counts = bench_learners.counts(False)[COUNTS[phase]]
     head = result.get("ramp_units", 0) + counts.warmup
     gemm = repeats(per_unit, head=head, repeats_=counts.repeats, group=counts.group)
     top = sorted(totals.items(), key=lambda kv: -kv[1])
@@ -195,7 +196,6 @@ def main() -> None:
                   f"  GEMM {row['gemm_s_per_repeat']['median_s']:8.3f} s ({row['gemm_share']:.0%})  speed-up "
                   f"{row['speedup']:.2f}x  ceiling {row['ceiling']:.2f}x  other at 3x {row['other_s_at_goal']:+.3f} s",
                   flush=True)
-    sys.path.insert(0, str(HERE))
     from _timing import write_to
 
     path = write_to(args.out, {"profile": args.profile, "threads": 1, "cpu": cpu(), "goal_speedup": GOAL,
