@@ -50,3 +50,11 @@ if _unknown:
     raise WorkflowError(CONFIG_SOURCES.relabel(
         f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule of this "
         f"workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})"))
+
+
+# The parsed workflow and the libraries its settings import live as long as this process: the cyclic garbage
+# collector leaves them alone from here on (dswm.pipeline.heap), which ends a dry run ~1 s sooner and so each job's
+# own Snakemake on a cluster.
+from dswm.pipeline.heap import freeze_heap
+
+freeze_heap()

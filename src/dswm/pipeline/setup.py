@@ -26,6 +26,7 @@ from dswm.methods import registry
 from dswm.methods.base import Controller
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
+from dswm.pipeline.heap import freeze_heap
 from dswm.pipeline.subnormals import flush_subnormals
 from dswm.protocol.evaluation import evaluate
 from dswm.settings import EvaluationSettings, MethodSettings, Runtime, calibrated_scenario, scale_intensity
@@ -77,12 +78,14 @@ def log_demand_input(run: tracking.JobRun, tensor_dir: str | Path, dataset: str,
 
 
 def prepare_process(threads: int) -> bool:
-    """Flush subnormal floats to zero (before any worker thread starts: they inherit it), set torch's ``threads``
-    and keep freed tensor memory in the heap: every job's process (:func:`init_process`) and every benchmark's.
-    Returns whether subnormals are flushed (False where the CPU has no such mode)."""
+    """Flush subnormal floats to zero (before any worker thread starts: they inherit it), set torch's ``threads``,
+    keep freed tensor memory in the heap and keep the cyclic collector off the imported libraries
+    (:mod:`dswm.pipeline.heap`): every job's process (:func:`init_process`) and every benchmark's. Returns whether
+    subnormals are flushed (False where the CPU has no such mode)."""
     flushed = flush_subnormals()
     torch.set_num_threads(threads)
     keep_freed_memory()
+    freeze_heap()
     return flushed
 
 
