@@ -31,6 +31,7 @@ from _timing import RESULTS, spread_ms, write
 from dswm.pipeline.setup import prepare_process
 from dswm.methods.dswm.agent import DSWMController
 from dswm.methods.dswm.settings import resolve as dswm_settings
+from dswm.methods.search import configured_search
 from dswm.sim.scenario import load_scenario
 from dswm.methods.base import DayContext
 from dswm.sim.core import FleetCore, Grid, initial_positions
@@ -49,7 +50,8 @@ def _controller(cfg: dict, profile: str, planner_over: dict, core: FleetCore, de
     c["methods"][method] = {**(c["methods"].get(method) or {}),
                             "planner": {**((c["methods"].get(method) or {}).get("planner") or {}), **planner_over}}
     ctl = DSWMController(name=method, seed=0, device=device,
-                         options=dswm_settings(c, method=method, profile=profile, search=cfg["search"]))
+                         options=dswm_settings(c, method=method, profile=profile,
+                                               search=configured_search(cfg, profile)[0]))
     ctl.model = ctl._build_model(core.grid, core.scenario)
     ctl.model.set_normalizer(torch.as_tensor(core.demand[:1].cpu().numpy()))
     ctl.model.eval()
@@ -124,7 +126,7 @@ def _model_floor(ctl: DSWMController, core: FleetCore, n: int, steps: int) -> di
 
 
 def _train_throughput(cfg: dict, core: FleetCore, device: str, steps: int) -> dict:
-    s = dswm_settings(cfg["dswm"], method="dswm", profile="demo", search=cfg["search"])
+    s = dswm_settings(cfg["dswm"], method="dswm", profile="demo", search=configured_search(cfg, "demo")[0])
     rep = collect(core, n_transitions=2 * 143, cfg=s.training, seed=0, day_ids=np.arange(core.n_days))
     ctl = DSWMController(name="dswm", seed=0, device=device, options=s)
     model = ctl._build_model(core.grid, core.scenario)

@@ -130,7 +130,10 @@ def test_repositioning_pays_on_every_dataset_and_the_oracle_bounds_greedy(run):
 def test_every_bcd_of_the_run_ran_the_one_search_and_the_tables_give_the_room(run):
     from dswm.protocol.evaluation import read_method_record
 
+    from dswm.methods.search import configured_search
+
     cfg = load_yaml(run / "config.yaml")
+    search = configured_search(cfg, "smoke")[0]   # the profile's: its budget merged in
     searching = {"greedy", "oracle", "dswm_plus", "dswm_plus_persist", "perfect"}
     for ds in DATASETS:
         for m in methods_on(ds):
@@ -138,8 +141,8 @@ def test_every_bcd_of_the_run_ran_the_one_search_and_the_tables_give_the_room(ru
             assert rec["method"] == m
             if m in searching:
                 assert {k: rec["search"][k] for k in ("sweeps", "lattice", "refine")} == \
-                    {k: cfg["search"][k] for k in ("sweeps", "lattice", "refine")}, (ds, m)
-                assert sorted(rec["search"]["bw_logits"]) == sorted(cfg["search"]["bw_logits"])
+                    {k: search[k] for k in ("sweeps", "lattice", "refine")}, (ds, m)
+                assert sorted(rec["search"]["bw_logits"]) == sorted(search["bw_logits"])
             else:
                 assert rec["search"] is None, (ds, m)
     report = json.loads((run / "results" / "audit" / "report.json").read_text())

@@ -20,7 +20,7 @@ from dswm.methods.dswm.rssm import RSSMConfig
 from dswm.methods.dswm.settings import DSWMBudget
 from dswm.methods.dswm.training import TrainConfig
 from dswm.methods.dswm.world_model import WorldModelConfig
-from dswm.methods.search import SearchSettings
+from dswm.methods.search import SearchSettings, configured_search
 
 from conftest import ROOT
 
@@ -269,11 +269,18 @@ def test_dswms_sections_overrides_and_budgets_and_the_search_are_valid_and_build
         for method, over in dswm["methods"].items():
             if over and name in over:
                 defs_validator(f"dswm_{name}_partial").validate(over[name])
-    defs_validator("search").validate(config["search"])
+    defs_validator("search_budgeted").validate(config["search"])
     for candidate in config["selection"]["search_candidates"]:
         defs_validator("search").validate(candidate)
-    assert build(SearchSettings, config["search"], "search").bw_logits == tuple(
-        sorted(map(float, config["search"]["bw_logits"]), key=abs))
+    plain = {k: v for k, v in config["search"].items() if k != "budgets"}
+    assert configured_search(config, "demo") == (plain, "search") and configured_search(config, "paper")[0] == plain
+    smoke, key = configured_search(config, "smoke")   # CI's weaker search, merged over the section
+    assert key == "search (with search.budgets.smoke)" and smoke == {**plain, **config["search"]["budgets"]["smoke"]}
+    for profile in config["profiles"]:
+        section = configured_search(config, profile)[0]
+        defs_validator("search").validate(section)
+        assert build(SearchSettings, section, "search").bw_logits == tuple(
+            sorted(map(float, section["bw_logits"]), key=abs))
     assert sorted(dswm["budgets"]) == sorted(config["profiles"])
     for profile in config["profiles"]:
         budget = dswm["budgets"][profile]
@@ -283,8 +290,8 @@ def test_dswms_sections_overrides_and_budgets_and_the_search_are_valid_and_build
             over = over or {}
             planner = merge(merge(dswm["planner"], budget["planner"]), over.get("planner"))
             defs_validator("dswm_planner").validate(planner)
-            built = build(PlannerConfig, planner, "dswm.planner", search=build(SearchSettings, config["search"],
-                                                                               "search"))
+            search = build(SearchSettings, configured_search(config, profile)[0], "search")
+            built = build(PlannerConfig, planner, "dswm.planner", search=search)
             assert built.n_samples == planner["n_samples"]
             world_model = merge(dswm["world_model"], over.get("world_model"))
             defs_validator("dswm_world_model").validate(world_model)
@@ -347,10 +354,11 @@ def test_a_missing_or_unknown_dswm_or_search_key_is_named_with_the_class_that_de
 
 
 def test_the_dswm_and_search_builders_refuse_what_the_schema_refuses_naming_the_key(config):
-    search = build(SearchSettings, config["search"], "search")
+    plain = configured_search(config, "demo")[0]
+    search = build(SearchSettings, plain, "search")
     with pytest.raises(ConfigError, match=r"^config key selection\.search_candidates\[0\]\.lattice: expected an odd "
                                           r"integer >= 3, found 4$"):
-        build(SearchSettings, {**config["search"], "lattice": 4}, "selection.search_candidates[0]")
+        build(SearchSettings, {**plain, "lattice": 4}, "selection.search_candidates[0]")
     with pytest.raises(ConfigError, match=r"^config key search\.bw_logits: expected \[\] \(the demand-proportional "
                                           r"split\) or a list of bandwidth logits in \[-1, 1\] that includes 0, "
                                           r"found \[0\.5\]$"):

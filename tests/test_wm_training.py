@@ -15,7 +15,7 @@ from dswm.methods.classical import GreedyController
 from dswm.methods.collect import collect
 from dswm.methods.dswm.settings import resolve
 from dswm.methods.dswm.training import TrainConfig, load_checkpoint, loss_function, save_training_figure, train
-from dswm.methods.search import SearchSettings
+from dswm.methods.search import SearchSettings, configured_search
 from dswm.methods.dswm.world_model import WorldModel, WorldModelConfig
 from prep.pipeline import generate_demo
 from prep.tensor import load
@@ -81,7 +81,8 @@ def test_greedy_collection_moves_the_fleet_with_the_configured_search(demo_core)
     """``collect_policy: greedy`` steps the training days with the greedy baseline running ``collect_search``
     (config.yaml: one sweep on a 5x5 lattice, the demand-proportional split)."""
     core, config = demo_core
-    training = resolve(config["dswm"], method="dswm", profile="smoke", search=config["search"]).training
+    training = resolve(config["dswm"], method="dswm", profile="smoke",
+                       search=configured_search(config, "smoke")[0]).training
     assert training.collect_search == SearchSettings(sweeps=1, lattice=5, refine=0, bw_logits=())
     quiet = dict(explore_std=0.0, bw_explore_std=0.0, collect_search=training.collect_search)
     lloyd = collect(core, n_transitions=143, cfg=_train_cfg(**quiet), seed=0, day_ids=core.day_ids)

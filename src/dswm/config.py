@@ -85,7 +85,8 @@ def with_budget(section: Mapping[str, Any], profile: str, key: str, *, required:
     """A section with per-profile budgets, under ``profile``: the section less its ``budgets`` with the
     ``budgets.<profile>`` entry merged over it (:func:`merge`, mappings key by key, so a budget may set one nested
     key alone), and the key that names it in messages, ``<key> (with <key>.budgets.<profile>)`` when that entry
-    exists. The one merge of every section that has budgets (``figures``, ``resources``, ``dswm``, the methods').
+    exists. The one merge of every section that has budgets (``figures``, ``resources``, ``dswm``, ``search``, the
+    methods').
 
     Args:
         section: the section as config.yaml holds it (``budgets``: {profile: {key: value}}, may be absent or null).

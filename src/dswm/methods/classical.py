@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from dswm.methods.base import Controller, DayContext
-from dswm.methods.search import SearchSettings, bcd_search, to_action
+from dswm.methods.search import SearchSettings, bcd_search, configured_search, to_action
 from dswm.sim.core import fleet_state_from_obs
 from dswm.sim.physics import ServiceParams
 
@@ -73,8 +73,10 @@ class GreedyController(BatchedController):
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> SearchSettings:
-        """The project's one search (config.yaml ``search``): every BCD of a run searches alike."""
-        return cls.options_from_plain(name=name, data=config["search"], where="search")
+        """The project's one search (config.yaml ``search``, with its budget for ``profile``): every BCD of a run
+        searches alike."""
+        section, key = configured_search(config, profile)
+        return cls.options_from_plain(name=name, data=section, where=key)
 
     @property
     def search(self) -> SearchSettings:

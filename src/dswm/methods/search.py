@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import torch
 
-from dswm.config import check_fields, setting
+from dswm.config import check_fields, setting, with_budget
 from dswm.sim.fleet import ACTIVE, FleetState, Geometry, fleet_step
 from dswm.sim.physics import DEMAND_EPS, ServiceParams, served_ratio
 from dswm.sim.scenario import Scenario
@@ -49,6 +49,13 @@ class SearchSettings:
         check_fields(self, self.section)
         # 0 first, so a tie keeps the demand-proportional split.
         object.__setattr__(self, "bw_logits", tuple(sorted((float(v) for v in self.bw_logits), key=abs)))
+
+
+def configured_search(config: Mapping[str, Any], profile: str) -> tuple[dict, str]:
+    """config.yaml's ``search`` under ``profile``: the section with its ``search.budgets.<profile>`` entry merged in,
+    and the key that names it in messages (``dswm.config.with_budget``). Every BCD of a run reads it here, so every
+    method of a profile searches alike."""
+    return with_budget(config["search"], profile, "search")
 
 
 @functools.lru_cache(maxsize=16)

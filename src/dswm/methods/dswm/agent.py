@@ -31,7 +31,7 @@ from dswm.methods.dswm.planner import AnchoredCEMPlanner, ImaginationScorer, Ima
 from dswm.methods.dswm.settings import DSWMSettings, resolve
 from dswm.methods.dswm.training import save_training_figure, train
 from dswm.methods.dswm.world_model import WorldModel
-from dswm.methods.search import SearchSettings, bcd_search, to_action
+from dswm.methods.search import SearchSettings, bcd_search, configured_search, to_action
 from dswm.sim.core import Grid, fleet_state_from_obs
 from dswm.sim.physics import ServiceParams
 from prep.atomic import atomic_path
@@ -77,9 +77,9 @@ class PlanningController(Controller):
 
     @classmethod
     def options_from_config(cls, *, name: str, config: Mapping[str, Any], profile: str) -> DSWMSettings:
-        """config.yaml's ``dswm`` section merged for ``name`` and ``profile``, with the shared ``search``
-        (``dswm.methods.dswm.settings``)."""
-        return resolve(config["dswm"], method=name, profile=profile, search=config["search"])
+        """config.yaml's ``dswm`` section merged for ``name`` and ``profile``, with the shared ``search`` under the
+        same profile (``dswm.methods.dswm.settings``)."""
+        return resolve(config["dswm"], method=name, profile=profile, search=configured_search(config, profile)[0])
 
     def search_settings(self) -> SearchSettings | None:
         """The shared BCD search when the planner is seeded by the "bcd" proposal, else None."""
