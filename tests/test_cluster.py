@@ -76,13 +76,12 @@ def sacct(ids) -> list[dict]:
 
 def core_hours(work: Path, only: Path | None = None) -> float:
     """Core-hours of a smoke run's `tables calibrate` jobs in ``work``: the wall seconds of every job that has a
-    benchmark file (each runs on one core), less those of the `figures`, `room_fill` and `learning` targets; with
-    ``only``, of the jobs that have a benchmark file in that tree too."""
+    benchmark file (each runs on one core), less those of the `figures` target; with ``only``, of the jobs that have a
+    benchmark file in that tree too."""
     seconds = 0.0
     for tsv in (work / "results" / "benchmarks").rglob("*.tsv"):
         rel = tsv.relative_to(work / "results" / "benchmarks")
-        if rel.parts[0] in ("extra_train", "extra_evaluate", "probe", "wm_quality", "figures", "room_fill_fit",
-                            "room_fill_evaluate", "learning_train", "learning_score"):
+        if rel.parts[0] in ("extra_train", "extra_evaluate", "probe", "wm", "figures"):
             continue
         if only is not None and not (only / "results" / "benchmarks" / rel).exists():
             continue

@@ -230,14 +230,11 @@ def test_the_verdict_finds_the_first_snapshot_where_both_criteria_hold():
 
 # ---- the target --------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def learning_run(smoke_run):
-    """The smoke run's tree (`tables calibrate`, `figures room_fill`) where `snakemake learning --config
-    profile=smoke` has run too: the learning jobs alone, on the tables' prepared data, calibration and MLflow store
-    (a tree of its own ran those again, ~1 min of CI). Its tests come after the integration tests, which leave the
-    tree as they found it."""
-    from smoke import run_smoke
+def learning_run(tmp_path_factory):
+    """A copy of the working tree where `snakemake learning --config profile=smoke` has run (from raw data)."""
+    from smoke import copy_tree, run_smoke
 
-    return run_smoke(smoke_run, "learning", "learning")
+    return run_smoke(copy_tree(tmp_path_factory.mktemp("learning") / "repo"), "learning", "learning")
 
 
 @pytest.mark.integration
@@ -297,7 +294,7 @@ def test_the_learning_target_writes_a_curve_per_learner_on_the_validation_days(l
 def test_the_tables_target_schedules_no_learning_job(learning_run):
     from smoke import snakemake
 
-    proc = snakemake(learning_run, "tables", "-n", "--forceall", "--cores", "2")   # every job of `tables`
+    proc = snakemake(learning_run, "tables", "-n", "--cores", "2")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rules = set(re.findall(r"^(?:local)?rule (\w+):", proc.stdout + proc.stderr, flags=re.M))
     assert "train" in rules and not {r for r in rules if r.startswith("learning") or r.endswith("learning_curves")}
