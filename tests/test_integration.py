@@ -128,9 +128,8 @@ def test_repositioning_pays_on_every_dataset_and_the_oracle_bounds_greedy(run):
 
 
 def test_every_bcd_of_the_run_ran_the_one_search_and_the_tables_give_the_room(run):
-    from dswm.protocol.evaluation import read_method_record
-
     from dswm.methods.search import configured_search
+    from dswm.protocol.evaluation import read_method_record
 
     cfg = load_yaml(run / "config.yaml")
     search = configured_search(cfg, "smoke")[0]   # the profile's: its budget merged in

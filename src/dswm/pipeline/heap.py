@@ -16,16 +16,19 @@ interpreter flushes at exit whatever the collector does.
 from __future__ import annotations
 
 import atexit
+import functools
 import gc
 
-_AT_EXIT: list[bool] = []
+
+@functools.cache
+def _freeze_at_exit() -> None:
+    """Register ``gc.freeze`` with ``atexit``, once per process."""
+    atexit.register(gc.freeze)
 
 
 def freeze_heap() -> int:
-    """Freeze every object alive now (call it once the job's libraries are imported), and again at exit (registered
-    once per process). Returns how many objects are frozen (``gc.get_freeze_count``)."""
+    """Freeze every object alive now (call it once the job's libraries are imported), and again at exit. Returns how
+    many objects are frozen (``gc.get_freeze_count``)."""
     gc.freeze()
-    if not _AT_EXIT:
-        atexit.register(gc.freeze)
-        _AT_EXIT.append(True)
+    _freeze_at_exit()
     return gc.get_freeze_count()
