@@ -460,16 +460,22 @@ def test_every_figure_is_written_with_its_data_caption_and_profile(run):
 
 
 def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_evaluations_on_the_same_days(run):
-    """Every cell of the foresight grid is a main evaluation or an extra run (rho0, alg1) on every dataset;
+    """Every cell of the foresight grid is a main evaluation or an extra run (rho0, alg1) on each of its datasets;
     the headroom map's own cell is the main evaluations' first ID day, the ceiling's value stands in every D_max
-    column, and the CSV names exactly the cells whose room reaches min_room."""
+    column, and the CSV names exactly the cells whose room reaches min_room. The smoke budget draws each on one
+    dataset (config.yaml figures.budgets.smoke): the grid on Milan, the map on Shanghai."""
+    from dswm.settings import figures_settings
+
+    figures = figures_settings(load_yaml(ROOT / "config.yaml"), "smoke")
+    assert (figures.foresight.datasets, figures.headroom.datasets) == (("milan",), ("shanghai",))
     fig = run / "results" / "figures"
     for name in ("foresight", "headroom"):
         assert (fig / f"{name}.png").read_bytes()[:4] == b"\x89PNG", name
         first = (fig / f"{name}.csv").read_text().splitlines()[0]
         assert first.startswith(f"# {name.capitalize()} (no paper figure): ") and first.endswith("(profile: smoke)"), first
     grid = pl.read_csv(fig / "foresight.csv", comment_prefix="#").filter(pl.col("panel") == "a")
-    for ds in ("milan", "shanghai", "yjmob"):
+    assert set(grid["dataset"]) == {"milan"}
+    for ds in figures.foresight.datasets:
         part = grid.filter((pl.col("dataset") == ds) & (pl.col("planner") != "reference"))
         assert part.group_by("status").len().sort("status").rows() == [("extra", 4), ("main", 4)], ds
         own = part.filter((pl.col("planner") == "plus") & (pl.col("source") == "model") & (pl.col("rho") == 0.95))
@@ -477,10 +483,11 @@ def test_the_foresight_grid_and_the_headroom_map_draw_the_runs_and_the_main_eval
         extra = part.filter(pl.col("variant") == "alg1")["method"].sort().to_list()
         assert extra == ["dswm_plus_persist", "perfect"]
     assert set(pl.read_csv(fig / "foresight.csv", comment_prefix="#").filter(pl.col("panel") == "b")["dataset"]) == {
-        "milan", "shanghai", "yjmob"}                       # the world model's RMSE of every dataset
+        "milan"}                                            # the world model's RMSE of the grid's dataset
     table = pl.read_csv(fig / "headroom.csv", comment_prefix="#")
-    assert table.height == 2 * 2 * 2                        # smoke: Milan, Shanghai x D_max {500, 1500} x u {1, 2}
-    for ds in ("milan", "shanghai"):
+    assert table.height == 1 * 2 * 2                        # smoke: Shanghai x D_max {500, 1500} x u {1, 2}
+    assert set(table["dataset"]) == {"shanghai"}
+    for ds in figures.headroom.datasets:
         own = table.filter((pl.col("dataset") == ds) & (pl.col("d_max_m") == 1500.0) & (pl.col("factor") == 1.0))
         assert own["greedy"].to_list() == [pytest.approx(seed_score(run, ds, "greedy", "id"), abs=1e-12)]
         assert own["ceiling"].to_list() == [pytest.approx(seed_score(run, ds, "ceiling", "id"), abs=1e-12)]
