@@ -26,9 +26,9 @@ def pytest_addoption(parser):
 def pytest_collection_modifyitems(config, items):
     """Tests marked `cluster` need engines that `tests/cluster/install.sh` installs as root: they are collected with
     ``--cluster`` only, and a plain run says how many it left out."""
-    # The tests that read the local smoke run come after every other test: with ``--cluster`` that run starts only
-    # once the SLURM run has ended (smoke_tables), and the unit tests before it use the core the SLURM jobs leave
-    # idle instead of waiting beside an idle pytest. The cluster tests come last: they read the SLURM run's record.
+    # The tests that read the local smoke run come after every other test: that run, and with ``--cluster`` the
+    # SLURM run, start with the session (local_smoke, slurm_smoke) and go on beside the unit tests, one process,
+    # instead of after them. The cluster tests come last: they read the SLURM run's record.
     items.sort(key=lambda item: (item.get_closest_marker("cluster") is not None,
                                  "smoke_tables" in getattr(item, "fixturenames", ())))
     if config.getoption("--cluster"):
@@ -72,7 +72,8 @@ def one_thread():
 @pytest.fixture(scope="session", autouse=True)
 def slurm_smoke(request, tmp_path_factory):
     """With ``--cluster``: the loopback engines and the smoke DAG on SLURM, started as the session starts so that
-    its jobs run beside the unit tests (cluster/background.py); the cluster tests read it. Otherwise None."""
+    its jobs run beside the unit tests and the local smoke run (cluster/background.py); the cluster tests read it.
+    Otherwise None."""
     if not request.config.getoption("--cluster"):
         yield None
         return
@@ -83,25 +84,35 @@ def slurm_smoke(request, tmp_path_factory):
     run.stop()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def local_smoke(request, slurm_smoke, tmp_path_factory):
+    """The local smoke run (smoke.LocalSmokeRun), started as the session starts when a collected test reads it, after
+    the SLURM run of ``--cluster`` has started: both go on beside the unit tests, which pytest runs first; the tests
+    that read them wait for them. Otherwise None."""
+    needs = set().union(*(getattr(item, "fixturenames", ()) for item in request.session.items))
+    calls = ("tables", "figures") if "smoke_run" in needs else ("tables",) if "smoke_tables" in needs else ()
+    if not calls:
+        yield None
+        return
+    from smoke import LocalSmokeRun
+
+    run = LocalSmokeRun(tmp_path_factory.mktemp("smoke") / "repo", calls).launch()
+    yield run
+    run.stop()
+
+
 @pytest.fixture(scope="session")
-def smoke_tables(slurm_smoke, tmp_path_factory):
+def smoke_tables(local_smoke):
     """A copy of the working tree where the smoke DAG's `tables calibrate` has run (the cluster tests compare a SLURM
-    run with it; smoke_run adds `figures`). With ``--cluster`` it starts once the SLURM run has ended: beside it on
-    2 cores each run has the other's jobs as well as its own (cluster/background.py)."""
-    from smoke import copy_tree, run_smoke
-
-    if slurm_smoke is not None:
-        slurm_smoke.settle()
-    return run_smoke(copy_tree(tmp_path_factory.mktemp("smoke") / "repo"), "tables", "tables", "calibrate")
+    run with it; smoke_run adds `figures`)."""
+    return local_smoke.result("tables")
 
 
 @pytest.fixture(scope="session")
-def smoke_run(smoke_tables):
+def smoke_run(smoke_tables, local_smoke):
     """The tree of smoke_tables where the smoke DAG's `figures` and `room_fill` have run too (the integration tests
     check it)."""
-    from smoke import run_smoke
-
-    return run_smoke(smoke_tables, "figures", "figures", "room_fill")
+    return local_smoke.result("figures")
 
 
 @pytest.fixture(scope="session")

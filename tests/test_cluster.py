@@ -8,8 +8,8 @@ creates no run, and no secret of the engines shows in a log, a ``ps`` listing ta
 
 Collected with ``pytest --cluster`` only; the engines must be installed first (``tests/cluster/install.sh``, as root),
 and a missing one fails the tests by name. The engines and the SLURM run start with the session (conftest.slurm_smoke,
-cluster/background.py), so that its jobs use the core the unit tests leave idle; the local smoke run starts once it
-has ended (conftest.smoke_tables), and these tests run last. The measurements of the SLURM run (jobs, wall time,
+cluster/background.py), then the local smoke run (conftest.local_smoke), so that their jobs use the core the unit
+tests leave idle, and these tests run last. The measurements of the SLURM run (jobs, wall time,
 core-hours, against the local run) are printed in the summary and written to ``results/cluster_run.json`` of its
 tree.
 """
@@ -104,12 +104,13 @@ def slurm_run(engines, slurm_smoke, smoke_tables, request):
         "slurm": {"datasets": list(DATASETS), "jobs": len(submitted),
                   "local_rules_jobs": sum(job_stats(text).values()) - len(submitted), "wall_s": round(wall, 1),
                   "core_hours": round(sum(int(r["CPUTimeRAW"]) for r in records) / 3600, 3),
-                  "beside": "the unit tests (pytest --cluster) or nothing (pytest --cluster -m cluster), on 2 cores"},
+                  "beside": "the local smoke run and the unit tests (pytest --cluster) or the local smoke run alone "
+                            "(pytest --cluster -m cluster), on 2 cores"},
         "local": {"datasets": ["milan", "shanghai", "yjmob"],
                   "jobs": sum(job_stats((smoke_tables / "smoke_tables.out").read_text()).values()),
                   "wall_s": local["tables"], "core_hours": round(core_hours(smoke_tables), 3),
                   "core_hours_of_the_slurm_runs_jobs": round(core_hours(smoke_tables, only=work), 3),
-                  "beside": "nothing but the session's pytest, after the SLURM run"},
+                  "beside": "the SLURM run and the unit tests, from the session's start"},
     }
     (work / "results" / "cluster_run.json").write_text(json.dumps(summary, indent=2))
     reporter = request.config.pluginmanager.get_plugin("terminalreporter")

@@ -1,9 +1,10 @@
 """The smoke DAG on the loopback SLURM cluster, started in the background when the test session starts.
 
-With ``pytest --cluster`` the session starts the engines (engines.py) and this run first, so that the SLURM jobs
-use the core that the unit tests, one process, leave idle. The local smoke run (conftest.smoke_tables) starts only
-once this one has ended: on 2 cores the two runs side by side had each other's jobs as well as their own, and the
-local one ran past its hang guard. The cluster tests, which pytest runs last, read this run's record. Without
+With ``pytest --cluster`` the session starts the engines (engines.py) and this run first, then the local smoke run
+(conftest.local_smoke), so that their jobs use the core that the unit tests, one process, leave idle. This run is
+bound by SLURM's status queries more than by its cores (its jobs' scripts used ~300 of its ~1,000 s): beside the
+local run it leaves room. (The whole smoke DAG of three datasets on SLURM beside the local run did not end in
+27 min; Milan's is a third of it.) The cluster tests, which pytest runs last, read this run's record. Without
 ``--cluster`` nothing here runs.
 
 It runs the smoke DAG of ONE dataset, Milan (the main table's, the only one every method runs on, and the
@@ -38,8 +39,8 @@ OVERLAY = "slurm_smoke.yaml"
 """Written at the root of the SLURM run's tree and given to Snakemake with ``--configfile`` after config.yaml."""
 LIMIT_S = 2400
 """The hang guard of the SLURM run, not a budget: its 33 jobs took 12.8 min on this project's 2-core machine with
-another smoke run beside them (the whole smoke DAG's 75 took 15.1 min alone, and had not ended after 27 min beside
-the local run)."""
+another smoke run beside them, 16-17 min beside the unit tests (the whole smoke DAG's 75 took 15.1 min alone, and
+had not ended after 27 min beside the local run)."""
 PS_EVERY_S = 1.0
 """How often the process list is read during the run (:class:`ProcessWatch`)."""
 INIT_STATUS_CHECK_S = 2
