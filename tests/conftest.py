@@ -28,9 +28,13 @@ def pytest_collection_modifyitems(config, items):
     ``--cluster`` only, and a plain run says how many it left out."""
     # The tests that read the local smoke run come after every other test: that run, and with ``--cluster`` the
     # SLURM run, start with the session (local_smoke, slurm_smoke) and go on beside the unit tests, one process,
-    # instead of after them. The cluster tests come last: they read the SLURM run's record.
-    items.sort(key=lambda item: (item.get_closest_marker("cluster") is not None,
-                                 "smoke_tables" in getattr(item, "fixturenames", ())))
+    # instead of after them. Those that read its `tables` call alone (the quick benchmark, and the cluster tests,
+    # which read the SLURM run too) come before those that read its `figures` call, and so run while it goes.
+    def order(item):
+        uses, cluster = getattr(item, "fixturenames", ()), item.get_closest_marker("cluster") is not None
+        return "smoke_run" in uses, "smoke_tables" in uses or cluster, cluster
+
+    items.sort(key=order)
     if config.getoption("--cluster"):
         return
     left = [item for item in items if item.get_closest_marker("cluster")]

@@ -8,10 +8,10 @@ creates no run, and no secret of the engines shows in a log, a ``ps`` listing ta
 
 Collected with ``pytest --cluster`` only; the engines must be installed first (``tests/cluster/install.sh``, as root),
 and a missing one fails the tests by name. The engines and the SLURM run start with the session (conftest.slurm_smoke,
-cluster/background.py), then the local smoke run (conftest.local_smoke), so that their jobs use the core the unit
-tests leave idle, and these tests run last. The measurements of the SLURM run (jobs, wall time,
-core-hours, against the local run) are printed in the summary and written to ``results/cluster_run.json`` of its
-tree.
+cluster/background.py), then the local smoke run (conftest.local_smoke), so that their jobs use the core the unit tests
+leave idle; pytest runs these tests once the local run's `tables` call has ended, while its `figures` call goes. The
+measurements of the SLURM run (jobs, wall time, core-hours, against the local run) are printed in the summary and
+written to ``results/cluster_run.json`` of its tree.
 """
 from __future__ import annotations
 

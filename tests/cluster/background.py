@@ -1,11 +1,11 @@
 """The smoke DAG on the loopback SLURM cluster, started in the background when the test session starts.
 
 With ``pytest --cluster`` the session starts the engines (engines.py) and this run first, then the local smoke run
-(conftest.local_smoke), so that their jobs use the core that the unit tests, one process, leave idle. This run is
-bound by SLURM's status queries more than by its cores (its jobs' scripts used ~300 of its ~1,000 s): beside the
-local run it leaves room. (The whole smoke DAG of three datasets on SLURM beside the local run did not end in
-27 min; Milan's is a third of it.) The cluster tests, which pytest runs last, read this run's record. Without
-``--cluster`` nothing here runs.
+(conftest.local_smoke), so that their jobs use the core that the unit tests, one process, leave idle. This run is bound
+by SLURM's status queries more than by its cores (its jobs' scripts used ~300 of its ~1,000 s): beside the local run it
+leaves room. (The whole smoke DAG of three datasets on SLURM beside the local run did not end in 27 min; Milan's is a
+third of it.) The cluster tests, which pytest runs after the unit tests, read this run's record. Without ``--cluster``
+nothing here runs.
 
 It runs the smoke DAG of ONE dataset, Milan (the main table's, the only one every method runs on, and the
 calibration's): 33 SLURM jobs instead of the 75 of all three datasets, every rule and every method of the smoke
