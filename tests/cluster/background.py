@@ -8,8 +8,9 @@ third of it.) The cluster tests, which pytest runs after the unit tests, read th
 nothing here runs.
 
 It runs the smoke DAG of ONE dataset, Milan (the main table's, the only one every method runs on, and the
-calibration's): 33 SLURM jobs instead of the 75 of all three datasets, every rule and every method of the smoke
-profile among them, each job's fixed cost on SLURM (~12 s of a core, docs/CLUSTER.md) paid a third as often.
+calibration's), with seven of its methods (METHODS): 15 SLURM jobs, every rule of the targets among them, where all
+methods of the three datasets would be 75, each with SLURM's fixed cost (~12 s of a core for its Snakemake and its
+start, docs/CLUSTER.md).
 
 The tracking server asks for credentials (basic-auth): Snakemake runs with the writer's user and password in its
 environment (``MLFLOW_TRACKING_USERNAME`` / ``MLFLOW_TRACKING_PASSWORD``), which SLURM passes to every job
@@ -35,12 +36,20 @@ TARGETS = ("tables", "calibrate")
 DATASETS = ("milan",)
 """The datasets of the SLURM run: `profiles.smoke.datasets` of the config file it adds (OVERLAY), a subset of the
 local smoke run's, whose jobs have the same settings slices (no train or evaluate job reads the dataset list)."""
+METHODS = ("dswm", "dswm_plus", "greedy", "ppo", "jtoratc", "static", "perfect")
+"""The methods of the SLURM run: `methods.run` of OVERLAY, in config.yaml's order. One of each kind of job the cluster
+tests look at: a deployment (static), the shared BCD search (greedy) and a clairvoyant bound on it (perfect), a solver
+whose results carry its solve times (jtoratc), a Stable-Baselines3 learner (ppo: a train job), the world model
+(dswm: a train job) and a method that evaluates another's training (dswm_plus), and the room footnote's low, high and
+fill methods. Each job's settings slice is the same as in the local run (no train or evaluate job reads the method
+list), so their results are compared; the other twelve methods are more of the same two rules, each with SLURM's
+~17 s of a core of fixed cost (its Snakemake's parse, the job's start, accounting and the tracking server)."""
 OVERLAY = "slurm_smoke.yaml"
 """Written at the root of the SLURM run's tree and given to Snakemake with ``--configfile`` after config.yaml."""
 LIMIT_S = 2400
-"""The hang guard of the SLURM run, not a budget: its 33 jobs took 12.8 min on this project's 2-core machine with
-another smoke run beside them, 16-17 min beside the unit tests (the whole smoke DAG's 75 took 15.1 min alone, and
-had not ended after 27 min beside the local run)."""
+"""The hang guard of the SLURM run, not a budget: with all 18 methods (33 jobs) it took 12.8 min on this project's
+2-core machine with another smoke run beside it, 16-17 min beside the unit tests, ~21 min beside both (the whole
+smoke DAG's 75 took 15.1 min alone, and had not ended after 27 min beside the local run)."""
 PS_EVERY_S = 1.0
 """How often the process list is read during the run (:class:`ProcessWatch`)."""
 INIT_STATUS_CHECK_S = 2
@@ -111,7 +120,8 @@ class SlurmSmokeRun:
             self.work = copy_tree(self.root / "repo")
             self.log = self.root / "snakemake.out"
             (self.work / OVERLAY).write_text("# the SLURM smoke run of the cluster tests (cluster/background.py)\n"
-                                             f"profiles: {{smoke: {{datasets: [{', '.join(DATASETS)}]}}}}\n")
+                                             f"profiles: {{smoke: {{datasets: [{', '.join(DATASETS)}]}}}}\n"
+                                             f"methods: {{run: [{', '.join(METHODS)}]}}\n")
             self.argv, env = command(*TARGETS, "--configfile", OVERLAY,
                                      "--executor", "slurm", "--profile", "profiles/slurm", "--jobs", "4",
                                      "--slurm-init-seconds-before-status-checks", str(INIT_STATUS_CHECK_S),
