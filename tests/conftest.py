@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import pytest
@@ -15,6 +16,9 @@ LEARNING_BASELINES = {"ppo": "model-free RL", "sac": "model-free RL", "maddpg": 
                       "tdmpc": "model-based", "emorl_tcto": "multi-obj. RL",
                       "hrl_tpra": "hier. RL"}
 """The paper's learning baselines with their Table III class; each trains alone (no other method shares its model)."""
+HTTP_ENV_PREFIX = "MLFLOW_HTTP_REQUEST_"
+"""The prefix of the environment variables through which MLflow's REST client reads its retries, backoff and timeout
+(dswm.pipeline.tracking.HTTP_ENV)."""
 
 
 def pytest_addoption(parser):
@@ -62,6 +66,18 @@ def subnormals_kept():
     torch.set_flush_denormal(False)
     yield
     torch.set_flush_denormal(False)
+
+
+@pytest.fixture(autouse=True)
+def mlflow_http_env_restored():
+    """Every test ends with MLflow's HTTP settings (``MLFLOW_HTTP_REQUEST_*``) as it found them: a job opened in this
+    process sets them for the process from its ``mlflow.http`` (dswm.pipeline.tracking.configure_http), and a later
+    test, or a process it starts, would otherwise inherit one test's 5-second timeout."""
+    before = {k: v for k, v in os.environ.items() if k.startswith(HTTP_ENV_PREFIX)}
+    yield
+    for key in [k for k in os.environ if k.startswith(HTTP_ENV_PREFIX)]:
+        del os.environ[key]
+    os.environ.update(before)
 
 
 @pytest.fixture(autouse=True)

@@ -206,12 +206,19 @@ def test_the_tracking_server_holds_one_finished_run_per_job(slurm_run, engines, 
     assert {"id/sr_mean", "ood/sr_mean"} <= set(one.data.metrics)
 
 
+HTTP = load_yaml(ROOT / "config.yaml")["mlflow"]["http"]
+"""The retries, backoff and timeout of config.yaml's ``mlflow.http``: the writers' requests wait like a job's."""
+
+
 def _writer(uri: str, experiment_id: str, index: int, barrier, out) -> None:
-    """One of the concurrent writers: a run with params, 20 batches of metrics, tags and an end."""
+    """One of the concurrent writers: a run with params, 20 batches of metrics, tags and an end, its HTTP settings
+    those of a job (:data:`HTTP`), not whatever the test process's environment held."""
     try:
         from mlflow.entities import Metric, Param, RunTag
 
-        client = MlflowClient(tracking_uri=uri)
+        from dswm.pipeline.tracking import client_for
+
+        client = client_for({"tracking_uri": uri, "http": HTTP})
         barrier.wait(timeout=60)
         run = client.create_run(experiment_id, tags={"writer": str(index)})
         client.log_batch(run.info.run_id, params=[Param(f"p{k}", str(k * index)) for k in range(50)])

@@ -1,7 +1,10 @@
 """MLflow tracking: store and experiment, one run per job, batches, no duplicate FINISHED runs, FAILED runs."""
+import os
+
 import pytest
 from mlflow.tracking import MlflowClient
 
+from conftest import HTTP_ENV_PREFIX
 from dswm.pipeline import tracking
 
 RESOLVED = {"profile": "smoke", "scenario": {"n_uavs": 16, "channel": {"a": 9.61}},
@@ -267,6 +270,15 @@ def unavailable():
     server = _Unavailable()
     yield server
     server.close()
+
+
+def test_a_job_sets_mlflow_s_http_variables_which_the_test_fixture_restores(tmp_path):
+    """configure_http writes MLflow's HTTP variables into the process's environment; conftest's
+    mlflow_http_env_restored undoes every variable with its prefix after each test, so each of them must carry it."""
+    tracking.configure_http({"max_retries": 2, "backoff_factor": 0, "timeout_s": 5})
+    written = {var: os.environ[var] for var in tracking.HTTP_ENV.values()}
+    assert sorted(written.values()) == ["0", "2", "5"]
+    assert [var for var in written if not var.startswith(HTTP_ENV_PREFIX)] == []
 
 
 def test_a_server_that_answers_503_is_retried_a_bounded_number_of_times_then_named(unavailable, tmp_path,
