@@ -22,7 +22,8 @@ from learner_checks import core, scenario3  # noqa: F401 (fixtures)
 SMALL = GAMATRSettings(crop_radius=1, context_side=2, d_model=16, heads=2, layers=2, ffn_hidden=32, critic_hidden=32,
                        critic_depth=2, actor_lr=1e-3, critic_lr=1e-3, gamma=0.9, gae_lambda=0.95, clip_eps=0.2,
                        epochs=2, critic_epochs=20, minibatches=2, entropy_coef=0.0, init_std=0.5, max_grad_norm=1.0,
-                       fairness_weight=0.1, n_envs=2, transitions=6 * 286, log_points=6, checkpoint_every=2)
+                       fairness_weight=0.1, matmul_dtype="float32", n_envs=2, transitions=6 * 286, log_points=6,
+                       checkpoint_every=2)
 QUICK = dataclasses.replace(SMALL, transitions=286, critic_epochs=2)  # one round of two days
 
 
@@ -124,6 +125,34 @@ def test_a_masked_uav_receives_no_attention_and_changes_nothing_for_the_others()
     with torch.no_grad():
         moved = policy.embed(live._replace(uav=changed.uav))
         assert not torch.allclose(moved[:, :2], policy.embed(live)[:, :2])
+
+
+def test_bfloat16_products_keep_the_float32_stream_the_mask_and_every_gradient():
+    policy = toy_policy()
+    low = GraphAttentionPolicy(n_agents=3, uav_in=5, context_in=4, d_model=8, heads=2, layers=2, ffn_hidden=16,
+                               init_std=0.5, matmul_dtype="bfloat16")
+    low.load_state_dict(policy.state_dict())
+    x = toy_inputs(64, [True, True, False])
+    emb, _ = policy.embed(x, return_weights=True)
+    emb_low, weights = low.embed(x, return_weights=True)
+    assert emb_low.dtype == torch.float32 and low(x)[0].dtype == torch.float32
+    gap = float((emb_low - emb).detach().abs().max())
+    assert 0.0 < gap < 0.1  # the products rounded to 8 significant bits, the layer-normed embedding O(1)
+    for w in weights:  # softmax in float32: rows sum to 1 and an unavailable UAV gets exactly 0
+        assert w["self"].dtype == torch.float32 and float(w["self"][:, :, :2, 2].abs().max()) == 0.0
+        torch.testing.assert_close(w["self"].sum(-1), torch.ones(64, 2, 3))
+    changed = x._replace(uav=x.uav.clone())
+    changed.uav[:, 2] += 3.0
+    assert torch.equal(low.embed(changed)[:, :2], emb_low[:, :2])
+    grads = []
+    for net in (policy, low):
+        net.zero_grad()
+        mean, std, _ = net(x)
+        (mean.pow(2).sum() + std.sum()).backward()
+        grads.append({k: p.grad for k, p in net.named_parameters()})
+    for name, grad in grads[1].items():
+        assert grad.dtype == torch.float32, name
+        torch.testing.assert_close(grad, grads[0][name], rtol=0.1, atol=0.02 * float(grads[0][name].abs().max()))
 
 
 def test_agent_embedding_std_is_zero_for_identical_agents():

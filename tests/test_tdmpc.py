@@ -409,6 +409,21 @@ def test_mppi_warm_start_shifts_the_previous_mean():
     torch.testing.assert_close(res.mean, expect, atol=2e-3, rtol=0)
 
 
+def test_bfloat16_planning_sums_float32_returns_close_to_the_float32_plans():
+    torch.manual_seed(0)
+    told = model_mod.TOLD(window=2, rows=4, cols=4, n_uavs=2, latent=8, hidden=32, channels=4)
+    for p in told.parameters():   # the reward and Q heads start at zero: give every weight a value
+        torch.nn.init.normal_(p, std=0.3)
+    z = torch.randn(3, 8, generator=torch.Generator().manual_seed(1))
+    cfg = toy_cfg(horizon=4, n_samples=256, n_elites=32)
+    plans = {dtype: mppi(told, z, cfg=dataclasses.replace(cfg, matmul_dtype=dtype),
+                         generator=torch.Generator().manual_seed(2)) for dtype in ("float32", "bfloat16")}
+    low, full = plans["bfloat16"], plans["float32"]
+    assert {t.dtype for t in low} == {torch.float32}
+    gap = float((low.value - full.value).abs().max())
+    assert 0.0 < gap < 0.02 * float(full.value.abs().max())   # products rounded to 8 bits; returns summed in float32
+
+
 # ----------------------------------------------------------------------------------- diagnostics
 
 def test_one_step_rewards_are_the_environments_and_leave_the_core_where_it_was(scn):

@@ -118,7 +118,8 @@ class Learner:
         self.settings, self.n_agents, self.device = s, n_agents, torch.device(device)
         self.policy = GraphAttentionPolicy(n_agents=n_agents, uav_in=uav_in, context_in=context_in,
                                            d_model=s.d_model, heads=s.heads, layers=s.layers,
-                                           ffn_hidden=s.ffn_hidden, init_std=s.init_std).to(self.device)
+                                           ffn_hidden=s.ffn_hidden, init_std=s.init_std,
+                                           matmul_dtype=s.matmul_dtype).to(self.device)
         self.critic = CentralCritic(obs_dim=obs_dim, hidden=s.critic_hidden, depth=s.critic_depth).to(self.device)
         self.policy_opt = torch.optim.Adam(self.policy.parameters(), lr=s.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=s.critic_lr)

@@ -12,6 +12,10 @@ network as log1p(x) (the fixed transform of ``dswm.methods.rl.spaces``).
   charging) or j = i. An unavailable UAV thus receives no attention weight and its features change nothing in
   the others' outputs; its own token still attends to the available UAVs, to itself and to the context (its
   action does nothing while it is unavailable).
+* Products: with ``matmul_dtype`` bfloat16 (:mod:`dswm.methods.matmul`'s names) the tokens and the blocks run under
+  torch's autocast: their matrix products in bfloat16 with float32 accumulation, each added to the float32 residual
+  stream; the layer norms, the attention's softmax, the heads, the critic, the weights and their gradients stay
+  float32. ``float32`` computes every operation as before the setting existed, bit for bit.
 * Critic: an MLP on the flat global observation (``dswm.methods.rl.spaces.flat_observation``: every map, every
   UAV's fleet features, the time phase), outputting the value in the value normalizer's units.
 """
@@ -23,6 +27,8 @@ from typing import NamedTuple
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from dswm.methods.matmul import MATMUL_DTYPES
 
 N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
@@ -113,7 +119,7 @@ class Attention(nn.Module):
         scores = q @ k.transpose(-1, -2) / math.sqrt(d // h)
         if allowed is not None:
             scores = scores.masked_fill(~allowed.unsqueeze(1), float("-inf"))
-        weights = torch.softmax(scores, dim=-1)
+        weights = torch.softmax(scores, dim=-1, dtype=torch.float32)  # float32 under autocast too
         return self.out((weights @ v).transpose(1, 2).reshape(n, length, d)), weights
 
 
@@ -148,8 +154,9 @@ class GraphAttentionPolicy(nn.Module):
     """
 
     def __init__(self, *, n_agents: int, uav_in: int, context_in: int, d_model: int, heads: int, layers: int,
-                 ffn_hidden: int, init_std: float):
+                 ffn_hidden: int, init_std: float, matmul_dtype: str = "float32"):
         super().__init__()
+        self.matmul_dtype = MATMUL_DTYPES[matmul_dtype]
         self.uav_in = nn.Linear(uav_in, d_model)
         self.index = nn.Embedding(n_agents, d_model)
         self.context_in = nn.Linear(context_in, d_model)
@@ -163,14 +170,17 @@ class GraphAttentionPolicy(nn.Module):
 
     def embed(self, x: PolicyInputs, *, return_weights: bool = False):
         """(N, K, d) final per-UAV embeddings (after the last LayerNorm); with ``return_weights`` also the list of
-        each block's attention weights."""
-        h = self.uav_in(x.uav) + self.index.weight.unsqueeze(0)
-        context = self.context_norm(self.context_in(x.context))
-        allowed = attention_mask(x.available)
-        weights = []
-        for block in self.blocks:
-            h, w = block(h, context, allowed)
-            weights.append(w)
+        each block's attention weights. With ``matmul_dtype`` bfloat16 the tokens and the blocks run under autocast:
+        their products in bfloat16, each added to the float32 residual stream."""
+        low = self.matmul_dtype != torch.float32
+        with torch.autocast(x.uav.device.type, dtype=self.matmul_dtype, enabled=low):
+            h = self.uav_in(x.uav) + self.index.weight.unsqueeze(0)
+            context = self.context_norm(self.context_in(x.context).float())
+            allowed = attention_mask(x.available)
+            weights = []
+            for block in self.blocks:
+                h, w = block(h, context, allowed)
+                weights.append(w)
         h = self.final_norm(h)
         return (h, weights) if return_weights else h
 

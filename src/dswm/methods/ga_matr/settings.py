@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from dswm.config import ConfigError, check_fields, setting
+from dswm.config import ENUM, ConfigError, check_fields, setting
+from dswm.methods.matmul import MatmulDtype
 
 ARCHITECTURE_KEYS = ("crop_radius", "context_side", "d_model", "heads", "layers", "ffn_hidden", "critic_hidden",
                      "critic_depth")
@@ -57,6 +58,10 @@ class GAMATRSettings:
     reward each slot; evaluation scores the environment's reward."""
     n_envs: int = setting("count")
     """Training days stepped together in one rollout (one round; its update follows)."""
+    matmul_dtype: MatmulDtype = setting(ENUM)
+    """The number format of the policy's matrix products (:mod:`dswm.methods.matmul`'s names): ``bfloat16`` runs its
+    tokens and graph-attention blocks under torch's autocast (products in bfloat16 with float32 accumulation; the
+    residual stream, the layer norms, the softmax, the heads, the critic, the weights and Adam's state float32)."""
     transitions: int = setting("count")
     """Environment transitions in all: whole rounds, a multiple of n_envs x (slots_per_day - 1)."""
     log_points: int = setting("count")

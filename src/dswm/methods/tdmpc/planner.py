@@ -10,6 +10,11 @@ Per slot, for B observations at once, from their latents z:
    and std (clamped to [min_std, max_std]) to them;
 4. as in TD-MPC, one elite sequence is drawn by its weight and its first action is executed (with the final
    first-step std as exploration noise while collecting), clipped to [-1, 1].
+
+With ``matmul_dtype`` bfloat16 (the setting of TD-MPC's gradient step) the latent rollouts run under torch's autocast:
+the networks' matrix products in bfloat16 with float32 accumulation, the latents between steps in bfloat16; every
+predicted reward and value is taken back to float32 before it is summed, and the sampling, the elites' weights and
+the refit stay float32. ``float32`` computes every operation as before the setting reached planning, bit for bit.
 """
 from __future__ import annotations
 
@@ -17,6 +22,8 @@ import dataclasses
 from typing import NamedTuple
 
 import torch
+
+from dswm.methods.matmul import MATMUL_DTYPES
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -34,6 +41,8 @@ class MPPIConfig:
     min_std: float
     max_std: float
     gamma: float
+    matmul_dtype: str = "float32"
+    """The latent rollouts' products (:mod:`dswm.methods.matmul`'s names; see the module docstring)."""
 
 
 class MPPIResult(NamedTuple):
@@ -56,10 +65,10 @@ def sequence_returns(model, z: torch.Tensor, actions: torch.Tensor, gamma: float
     g, disc = 0.0, 1.0
     for a in actions:
         z, r = model.next(z, a)
-        g = g + disc * r
+        g = g + disc * r.float()
         disc *= gamma
     q1, q2 = model.q(z, model.pi(z))
-    return g + disc * torch.minimum(q1, q2)
+    return g + disc * torch.minimum(q1, q2).float()
 
 
 @torch.no_grad()
@@ -70,7 +79,7 @@ def policy_sequences(model, z: torch.Tensor, *, n: int, horizon: int, std: float
     out = []
     for _ in range(horizon):
         a = model.pi(zp, std, generator)
-        out.append(a)
+        out.append(a.float())
         zp, _ = model.next(zp, a)
     return torch.stack(out)
 
@@ -86,6 +95,14 @@ def mppi(model, z: torch.Tensor, *, cfg: MPPIConfig, generator: torch.Generator,
         prev_mean: (B, H, A) the previous slot's final mean, or None at a day's first slot;
         explore: add the final first-step std as Gaussian noise to the executed action (collection only).
     """
+    low = MATMUL_DTYPES[cfg.matmul_dtype]
+    with torch.autocast(z.device.type, dtype=low, enabled=low != torch.float32):
+        return _mppi(model, z, cfg=cfg, generator=generator, prev_mean=prev_mean, explore=explore)
+
+
+def _mppi(model, z: torch.Tensor, *, cfg: MPPIConfig, generator: torch.Generator, prev_mean: torch.Tensor | None,
+          explore: bool) -> MPPIResult:
+    """:func:`mppi`'s body, under the autocast of ``cfg.matmul_dtype``."""
     b, h, n, e = z.shape[0], cfg.horizon, cfg.n_samples, cfg.n_elites
     a_dim = model.action_dim
     kw = {"device": z.device, "dtype": z.dtype}

@@ -79,8 +79,8 @@ class TDMPCSettings:
     """Sequences of H+1 observations per gradient step."""
     matmul_dtype: MatmulDtype = setting(ENUM)
     """The number format of the gradient step's matrix products and convolutions (:mod:`dswm.methods.matmul`'s
-    names): ``bfloat16`` runs the losses' forward under torch's autocast (float32 weights, Adam state and loss sums);
-    planning stays float32."""
+    names): ``bfloat16`` runs the losses' forward under torch's autocast (float32 weights, Adam state and loss sums),
+    and MPPI's latent rollouts too (:mod:`dswm.methods.tdmpc.planner`: rewards and values summed in float32)."""
     # ---- budgets
     steps: int = setting("count")
     """Gradient steps in all."""
@@ -120,7 +120,8 @@ class TDMPCSettings:
         """The planner's settings."""
         return MPPIConfig(horizon=self.horizon, n_samples=self.n_samples, n_policy=self.n_policy,
                           n_elites=self.n_elites, iterations=self.iterations, temperature=self.temperature,
-                          momentum=self.momentum, min_std=self.min_std, max_std=self.max_std, gamma=self.gamma)
+                          momentum=self.momentum, min_std=self.min_std, max_std=self.max_std, gamma=self.gamma,
+                          matmul_dtype=self.matmul_dtype)
 
 
 def resolve(config: Mapping[str, Any], *, name: str = "tdmpc", profile: str) -> TDMPCSettings:
