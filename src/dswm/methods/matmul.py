@@ -25,6 +25,14 @@ MATMUL_DTYPES = dict(zip(typing.get_args(MatmulDtype), (torch.float32, torch.bfl
 """The torch dtype of each value of :data:`MatmulDtype`."""
 
 
+def autocast(device_type: str, name: str) -> torch.autocast:
+    """torch's autocast to the products' dtype of ``name`` (a :data:`MatmulDtype`) on ``device_type``; off for
+    float32, where every operation stays as it is. For networks run whole under autocast (GA-MATR's policy, TD-MPC's
+    losses and MPPI) rather than layer by layer (:class:`MatmulLinear`)."""
+    dtype = MATMUL_DTYPES[name]
+    return torch.autocast(device_type, dtype=dtype, enabled=dtype != torch.float32)
+
+
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
            dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """``x @ weight.T + bias`` in float32, its product computed in ``dtype`` (see the module's docstring)."""

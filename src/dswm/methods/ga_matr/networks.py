@@ -28,7 +28,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from dswm.methods.matmul import MATMUL_DTYPES
+from dswm.methods.matmul import MatmulDtype, autocast
 
 N_ACTION = 3
 """(dx, dy, bw_logit) per UAV."""
@@ -154,9 +154,9 @@ class GraphAttentionPolicy(nn.Module):
     """
 
     def __init__(self, *, n_agents: int, uav_in: int, context_in: int, d_model: int, heads: int, layers: int,
-                 ffn_hidden: int, init_std: float, matmul_dtype: str = "float32"):
+                 ffn_hidden: int, init_std: float, matmul_dtype: MatmulDtype = "float32"):
         super().__init__()
-        self.matmul_dtype = MATMUL_DTYPES[matmul_dtype]
+        self.matmul_dtype = matmul_dtype
         self.uav_in = nn.Linear(uav_in, d_model)
         self.index = nn.Embedding(n_agents, d_model)
         self.context_in = nn.Linear(context_in, d_model)
@@ -172,8 +172,7 @@ class GraphAttentionPolicy(nn.Module):
         """(N, K, d) final per-UAV embeddings (after the last LayerNorm); with ``return_weights`` also the list of
         each block's attention weights. With ``matmul_dtype`` bfloat16 the tokens and the blocks run under autocast:
         their products in bfloat16, each added to the float32 residual stream."""
-        low = self.matmul_dtype != torch.float32
-        with torch.autocast(x.uav.device.type, dtype=self.matmul_dtype, enabled=low):
+        with autocast(x.uav.device.type, self.matmul_dtype):
             h = self.uav_in(x.uav) + self.index.weight.unsqueeze(0)
             context = self.context_norm(self.context_in(x.context).float())
             allowed = attention_mask(x.available)

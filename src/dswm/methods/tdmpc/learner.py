@@ -23,7 +23,7 @@ import copy
 import torch
 from torch import nn
 
-from dswm.methods.matmul import MATMUL_DTYPES
+from dswm.methods.matmul import MATMUL_DTYPES, autocast
 from dswm.methods.tdmpc.model import TOLD
 from dswm.methods.tdmpc.settings import TDMPCSettings
 
@@ -57,8 +57,7 @@ class Learner:
 
     def autocast(self) -> torch.autocast:
         """The losses' forward in ``matmul_dtype`` (see the module docstring); disabled for float32."""
-        dtype = MATMUL_DTYPES[self.s.matmul_dtype]
-        return torch.autocast(self.device.type, dtype=dtype, enabled=dtype != torch.float32)
+        return autocast(self.device.type, self.s.matmul_dtype)
 
     @torch.no_grad()
     def td_target(self, demand: torch.Tensor, fleet: torch.Tensor, time: torch.Tensor, reward: torch.Tensor,

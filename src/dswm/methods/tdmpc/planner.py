@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import torch
 
-from dswm.methods.matmul import MATMUL_DTYPES
+from dswm.methods.matmul import MatmulDtype, autocast
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -41,7 +41,7 @@ class MPPIConfig:
     min_std: float
     max_std: float
     gamma: float
-    matmul_dtype: str = "float32"
+    matmul_dtype: MatmulDtype = "float32"
     """The latent rollouts' products (:mod:`dswm.methods.matmul`'s names; see the module docstring)."""
 
 
@@ -95,8 +95,7 @@ def mppi(model, z: torch.Tensor, *, cfg: MPPIConfig, generator: torch.Generator,
         prev_mean: (B, H, A) the previous slot's final mean, or None at a day's first slot;
         explore: add the final first-step std as Gaussian noise to the executed action (collection only).
     """
-    low = MATMUL_DTYPES[cfg.matmul_dtype]
-    with torch.autocast(z.device.type, dtype=low, enabled=low != torch.float32):
+    with autocast(z.device.type, cfg.matmul_dtype):
         return _mppi(model, z, cfg=cfg, generator=generator, prev_mean=prev_mean, explore=explore)
 
 
