@@ -63,8 +63,11 @@ def test_algorithm_1_on_given_maps_takes_dswms_whole_planner_and_rho_0_trains_no
 
 def test_the_headroom_map_runs_greedy_and_perfect_per_cell_and_the_ceiling_once_per_factor(demo):
     jobs = S.headroom_jobs(demo)
-    # 2 datasets x (2 methods x (4 x 3 - 1) cells + ceiling at u x 0.5 and u x 2), seed 0
-    assert len(jobs) == 2 * (2 * 11 + 2)
+    # the demo's map, u x 1 and x 2: 2 datasets x (2 methods x (4 x 2 - 1) cells + the ceiling at u x 2), seed 0
+    assert len(jobs) == 2 * (2 * 7 + 1)
+    assert not [j for j in jobs if "u0.5" in j[1]]
+    paper = S.headroom_jobs(_settings("paper"))  # all three intensities: Milan 5 seeds, Shanghai 3
+    assert len(paper) == (5 + 3) * (2 * 11 + 2) and ("milan", "D250u0.5", "perfect", 4) in paper
     assert ("shanghai", "D1500u2", "ceiling", 0) in jobs and ("milan", "D250", "perfect", 0) in jobs
     assert not [j for j in jobs if j[2] == "ceiling" and not j[1].startswith("D1500")]
     assert S.headroom_variant(demo, 1500.0, 1.0) is None                        # the main evaluation
@@ -73,7 +76,7 @@ def test_the_headroom_map_runs_greedy_and_perfect_per_cell_and_the_ceiling_once_
     assert ev["eval_days"] == {"id": 1, "ood": 0}                               # figures.budgets.demo.headroom
     assert S.variant_evaluate_slice(demo, "greedy", S.parse_variant("u2"))["eval_days"] == {"id": 2, "ood": 0}
     names = {v.name for v in S.figure_variants(demo)}
-    assert {"do0.5", "K8", "u2", "rho0", "alg1", "D250u0.5", "D1500u2"} <= names
+    assert {"do0.5", "K8", "u2", "rho0", "alg1", "D250u2", "D1500u2"} <= names and "D250u0.5" not in names
 
 
 def test_a_bad_headroom_grid_is_refused_by_the_schema():

@@ -189,5 +189,5 @@ def test_room_fill_runs_the_profiles_test_days_in_the_regime_of_the_headroom_map
     _, cut = _settings("demo", eval_days={"id": 1, "ood": None})
     assert S.room_fill_slice(cut, "perfect")["eval_days"] == {"id": 1, "ood": 1}
     with pytest.raises(ConfigError, match=r"key 'figures.room_fill.intensity_scale' is 3.0, which is no cell of the "
-                                          r"headroom map \(figures.headroom.intensity_scales: \[0.5, 1.0, 2.0\]\)"):
+                                          r"headroom map \(figures.headroom.intensity_scales: \[1.0, 2.0\]\)"):
         _settings("demo", intensity_scale=3.0)
