@@ -104,6 +104,26 @@ def test_a_cap_merges_over_the_profile_budget_and_a_bad_key_names_the_cap():
         S.check_learning(*resolved(stray))
 
 
+def test_start_order_ranks_the_jobs_longest_first_changes_no_job_and_a_stray_name_is_refused():
+    settings, learning = resolved(config("demo"))
+    learners = S.learning_methods(settings, learning)
+    order = [m for m in learning.start_order if m in learners]
+    ranks = [S.learning_priority(learning, learners, m) for m in order]
+    assert ranks == list(range(len(order), 0, -1))  # the first listed highest, every listed one above 0
+    assert S.learning_priority(learning, learners, "static") == 0  # a reference: after the listed ones
+    reordered = S.learning_settings({**config("demo"), "learning": {**config("demo")["learning"], "budgets": {
+        "demo": {**config("demo")["learning"]["budgets"]["demo"], "start_order": ["hrl_tpra"]}}}}, "demo")
+    assert S.learning_priority(reordered, learners, "hrl_tpra") == 1
+    assert S.learning_priority(reordered, learners, order[0]) == 0
+    for method in learners:  # scheduling only: the jobs read the same settings
+        assert S.learning_train_slice(settings, learning, method) == S.learning_train_slice(settings, reordered, method)
+    stray = config("demo")
+    stray["learning"]["budgets"]["demo"]["start_order"] = ["ppo", "greedy"]
+    with pytest.raises(ConfigError, match=r"key 'learning.start_order' names 'greedy', which 'learning.methods' does "
+                                          r"not list"):
+        S.check_learning(*resolved(stray))
+
+
 def test_the_learning_section_changes_no_slice_of_the_tables_jobs():
     cfg = config("demo")
     other = copy.deepcopy(cfg)

@@ -17,6 +17,11 @@ LEARNING_REFERENCES = S.learning_references(SETTINGS, LEARNING)
 LEARNING_RUN = "results/learning/{dataset}/{method}/seed{seed}"
 
 
+def learning_priority(wildcards):
+    """A job's Snakemake priority: learning.start_order's learners first, the longest run first (dswm.settings)."""
+    return S.learning_priority(LEARNING, LEARNERS, wildcards.method)
+
+
 
 rule learning_train:
     input:
@@ -40,6 +45,7 @@ rule learning_train:
     wildcard_constraints:
         method=_alternatives(LEARNERS),
     threads: 1
+    priority: learning_priority
     resources:
         **job_resources("learning_train", method="{method}"),
     script:
@@ -66,6 +72,7 @@ rule learning_score:
     wildcard_constraints:
         method=_alternatives(LEARNERS + LEARNING_REFERENCES),
     threads: 1
+    priority: learning_priority
     resources:
         **job_resources("learning_score", method="{method}"),
     script:

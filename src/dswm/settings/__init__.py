@@ -29,7 +29,7 @@ One concern per module, every name re-exported here (``from dswm import settings
 from dswm.config import ConfigError, build
 from dswm.settings.calibration import CALIBRATION_RECORD, calibrated_scenario, intensity_inputs, read_intensity
 from dswm.settings.learning import (LearningSettings, capped_settings, check_learning, learning_methods,
-                                    learning_references, learning_score_slice, learning_settings,
+                                    learning_priority, learning_references, learning_score_slice, learning_settings,
                                     learning_train_slice)
 from dswm.settings.model import MethodSettings, Settings, evaluated_as, needs_gpu
 from dswm.settings.resolver import (check_figures, check_profile_datasets, check_raw_files, resolve,
@@ -56,8 +56,8 @@ from dswm.settings.variants import (ALGORITHM_1, HEADROOM_METHODS, PLANNERS, ROO
 __all__ = [
     "ConfigError", "build",
     "CALIBRATION_RECORD", "calibrated_scenario", "intensity_inputs", "read_intensity",
-    "LearningSettings", "capped_settings", "check_learning", "learning_methods", "learning_references",
-    "learning_score_slice", "learning_settings", "learning_train_slice",
+    "LearningSettings", "capped_settings", "check_learning", "learning_methods", "learning_priority",
+    "learning_references", "learning_score_slice", "learning_settings", "learning_train_slice",
     "MethodSettings", "Settings", "evaluated_as", "needs_gpu",
     "check_figures", "check_profile_datasets", "check_raw_files", "resolve", "select_profile",
     "SCHEMA", "SETTINGS_MARKER", "coerce_cli_strings", "complete_schema", "load_schema", "settings_class",

@@ -36,6 +36,9 @@ class LearningSettings:
     """Methods without training scored on the same days (the figure's horizontal lines)."""
     caps: dict[str, Any]
     """{method: options merged over its profile's options}: the budget of its one run (none: its own budget)."""
+    start_order: tuple[str, ...]
+    """Learners whose jobs start first, in this order (the longest runs first, so that the cores stay busy to the
+    end); the others after them. Scheduling only: no job's settings or results change with it."""
 
 
 def learning_settings(config: Mapping[str, Any], profile: str) -> LearningSettings:
@@ -59,14 +62,21 @@ def learning_methods(settings: Settings, learning: LearningSettings) -> list[str
     return [m for m in learning.methods if m in trained and m in settings.methods_on(learning.dataset)]
 
 
+def learning_priority(learning: LearningSettings, learners: list[str], method: str) -> int:
+    """The Snakemake ``priority`` of ``method``'s learning jobs: ``len(order) - i`` for the i-th drawn learner of
+    ``learning.start_order`` (the first the highest), 0 for every other method (higher starts first)."""
+    order = [m for m in learning.start_order if m in learners]
+    return len(order) - order.index(method) if method in order else 0
+
+
 def learning_references(settings: Settings, learning: LearningSettings) -> list[str]:
     """The methods of ``learning.references`` that ``methods.run`` holds and that do not learn."""
     return [m for m in learning.references if m in settings.methods and not settings.methods[m].learns]
 
 
 def check_learning(settings: Settings, learning: LearningSettings) -> None:
-    """``learning.dataset`` is one the profile prepares; every cap names a method of ``learning.methods`` and keys
-    of its options (:func:`capped_settings` of each learner).
+    """``learning.dataset`` is one the profile prepares; every cap and ``learning.start_order`` name methods of
+    ``learning.methods``, the caps keys of their options (:func:`capped_settings` of each learner).
 
     Raises:
         ConfigError: naming the key, what was expected and what was found.
@@ -78,6 +88,10 @@ def check_learning(settings: Settings, learning: LearningSettings) -> None:
     unknown = sorted(set(learning.caps) - set(learning.methods))
     if unknown:
         raise ConfigError(f"config.yaml: key 'learning.caps' names {', '.join(map(repr, unknown))}, which "
+                          f"'learning.methods' does not list (found {', '.join(learning.methods)})")
+    unknown = sorted(set(learning.start_order) - set(learning.methods))
+    if unknown:
+        raise ConfigError(f"config.yaml: key 'learning.start_order' names {', '.join(map(repr, unknown))}, which "
                           f"'learning.methods' does not list (found {', '.join(learning.methods)})")
     for method in learning_methods(settings, learning):
         capped_settings(settings, learning, method)
