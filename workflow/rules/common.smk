@@ -358,6 +358,12 @@ def learning_snapshots(wildcards):
     return {"snapshots": rules.learning_train.output.snapshots.format(**dict(wildcards.items()))}
 
 
+def learning_priority(wildcards):
+    """A learning job's Snakemake priority: learning.start_order's learners first, the longest run first
+    (dswm.settings.learning_priority)."""
+    return S.learning_priority(LEARNING, LEARNERS, wildcards.method)
+
+
 def learning_files(output, methods):
     """``output`` (a learning rule's output pattern) of every method of ``methods`` at learning.dataset and
     learning.seed."""

@@ -17,11 +17,6 @@ LEARNING_REFERENCES = S.learning_references(SETTINGS, LEARNING)
 LEARNING_RUN = "results/learning/{dataset}/{method}/seed{seed}"
 
 
-def learning_priority(wildcards):
-    """A job's Snakemake priority: learning.start_order's learners first, the longest run first (dswm.settings)."""
-    return S.learning_priority(LEARNING, LEARNERS, wildcards.method)
-
-
 
 rule learning_train:
     input:
