@@ -111,8 +111,9 @@ def test_start_order_ranks_the_jobs_longest_first_changes_no_job_and_a_stray_nam
     ranks = [S.learning_priority(learning, learners, m) for m in order]
     assert ranks == list(range(len(order), 0, -1))  # the first listed highest, every listed one above 0
     assert S.learning_priority(learning, learners, "static") == 0  # a reference: after the listed ones
-    reordered = S.learning_settings({**config("demo"), "learning": {**config("demo")["learning"], "budgets": {
-        "demo": {**config("demo")["learning"]["budgets"]["demo"], "start_order": ["hrl_tpra"]}}}}, "demo")
+    other = config("demo")
+    other["learning"]["budgets"]["demo"]["start_order"] = ["hrl_tpra"]
+    reordered = S.learning_settings(other, "demo")
     assert S.learning_priority(reordered, learners, "hrl_tpra") == 1
     assert S.learning_priority(reordered, learners, order[0]) == 0
     for method in learners:  # scheduling only: the jobs read the same settings

@@ -85,14 +85,11 @@ def check_learning(settings: Settings, learning: LearningSettings) -> None:
         raise ConfigError(f"config.yaml: key 'learning.dataset' is {learning.dataset!r}, which profile "
                           f"{settings.profile!r} does not run (profiles.{settings.profile}.datasets: "
                           f"{', '.join(settings.run.datasets)})")
-    unknown = sorted(set(learning.caps) - set(learning.methods))
-    if unknown:
-        raise ConfigError(f"config.yaml: key 'learning.caps' names {', '.join(map(repr, unknown))}, which "
-                          f"'learning.methods' does not list (found {', '.join(learning.methods)})")
-    unknown = sorted(set(learning.start_order) - set(learning.methods))
-    if unknown:
-        raise ConfigError(f"config.yaml: key 'learning.start_order' names {', '.join(map(repr, unknown))}, which "
-                          f"'learning.methods' does not list (found {', '.join(learning.methods)})")
+    for key, names in (("caps", learning.caps), ("start_order", learning.start_order)):
+        unknown = sorted(set(names) - set(learning.methods))
+        if unknown:
+            raise ConfigError(f"config.yaml: key 'learning.{key}' names {', '.join(map(repr, unknown))}, which "
+                              f"'learning.methods' does not list (found {', '.join(learning.methods)})")
     for method in learning_methods(settings, learning):
         capped_settings(settings, learning, method)
 
