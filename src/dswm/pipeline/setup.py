@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shlex
+import sys
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -24,6 +25,7 @@ import torch
 from dswm.config import build, stable_hash, to_plain
 from dswm.methods import registry
 from dswm.methods.base import Controller
+from dswm.methods.matmul import emulated_bfloat16_warning
 from dswm.pipeline import tracking
 from dswm.pipeline.allocator import keep_freed_memory
 from dswm.pipeline.heap import freeze_heap
@@ -127,8 +129,19 @@ def set_up(job: Mapping[str, Any], key: str, cls: type, intensity: str | Path | 
     init_process(settings)
     scenario = calibrated_scenario(Scenario.from_dict(job["scenario"]), intensity)
     scenario = scale_intensity(scenario, float(job.get("intensity_scale", 1.0)))
-    return JobSetup(job={**job, "scenario": to_plain(scenario)}, settings=settings, scenario=scenario,
-                    method=MethodSettings.from_plain(job["method"], "method"))
+    method = MethodSettings.from_plain(job["method"], "method")
+    warn_emulated_bfloat16(method, settings.device)
+    return JobSetup(job={**job, "scenario": to_plain(scenario)}, settings=settings, scenario=scenario, method=method)
+
+
+def warn_emulated_bfloat16(method: MethodSettings, device: str, native: bool | None = None) -> str | None:
+    """Print to the job's log (stderr) the warning of :func:`dswm.methods.matmul.emulated_bfloat16_warning` for the
+    method's ``matmul_dtype`` on ``device``, and return it (None: nothing to warn of)."""
+    message = emulated_bfloat16_warning(f"methods.{method.name}.matmul_dtype",
+                                        getattr(method.options, "matmul_dtype", None), device, native)
+    if message:
+        print(f"WARNING: {message}", file=sys.stderr)
+    return message
 
 
 def open_run(s: JobSetup, *, mlflow_cfg: Mapping[str, Any], stage: str, dataset: str, method: str, seed: int,
