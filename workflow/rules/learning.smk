@@ -17,7 +17,6 @@ LEARNING_REFERENCES = S.learning_references(SETTINGS, LEARNING)
 LEARNING_RUN = "results/learning/{dataset}/{method}/seed{seed}"
 
 
-
 rule learning_train:
     input:
         tensor=rules.prepare.output.tensor,
