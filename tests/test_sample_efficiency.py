@@ -137,7 +137,8 @@ def test_the_probe_job_scores_each_snapshot_on_the_first_id_day_as_the_evaluatio
     method = MethodSettings(name="maddpg", target="dswm.methods.maddpg:MADDPGController", label="MADDPG",
                             table_class="MARL", learns=True, training_source="maddpg", options=TINY)
     job = {"profile": "smoke", "scenario": to_plain(scenario3), "mlflow": {"experiment": "probe"},
-           "method": to_plain(method), "evaluation": {"device": "cpu", "torch_threads": 1, "batch_days": True}}
+           "method": to_plain(method),
+           "evaluation": {"device": "cpu", "torch_threads": 1, "batch_days": True, "reuse_seed_independent": False}}
     model = MADDPGController(name="maddpg", seed=0, options=TINY)
     model.load(base / "snap.pt")
     ev = evaluate(tensor=load(tmp_path / "data"), controller=model, scenario=scenario3, seed=0,

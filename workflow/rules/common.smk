@@ -160,6 +160,17 @@ def trained_model(wildcards):
     }
 
 
+def reused_evaluation(wildcards):
+    """The evaluation an evaluate job reuses: the result files of its dataset's first seed, for a method whose result
+    the seed does not change (evaluation.reuse_seed_independent; dswm.settings.reused_seed); none otherwise."""
+    first = S.reused_seed(SETTINGS, wildcards.dataset, wildcards.method, int(wildcards.seed))
+    if first is None:
+        return {}
+    source = {**dict(wildcards.items()), "seed": first}
+    return {f"reuse_{name}": getattr(rules.evaluate.output, name).format(**source)
+            for name in ("days", "trajectory", "record")}
+
+
 def train_manifests():
     """The training manifest of every train job of the selected profile (one per training source and seed)."""
     return [

@@ -4,6 +4,7 @@
 rule evaluate:
     input:
         unpack(trained_model),
+        unpack(reused_evaluation),  # the first seed's evaluation, for a method the seed does not change
         tensor=rules.prepare.output.tensor,
         meta=rules.prepare.output.meta,
         mlflow=rules.mlflow_init.output.marker,

@@ -68,7 +68,9 @@ class Controller:
         clairvoyant: True only for the bounds (oracle, perfect, ceiling); they alone receive ``DayContext.demand``.
         learns: True for methods trained by the ``train`` rule before evaluation.
         batched: True if :meth:`reset_batch`/:meth:`act_batch` step several days at once.
-        deterministic: True if the seed does not change the result (static, greedy, oracle).
+        deterministic: True if the result is a function of the inputs alone: neither the seed nor the clock changes
+            it (static, greedy, oracle, the ceiling); such a method is evaluated once per dataset
+            (``evaluation.reuse_seed_independent``).
         places: True only for a per-slot bound (the ceiling): it flies no fleet, it places it (:meth:`place_batch`).
     """
 

@@ -22,6 +22,7 @@ MLflow with exactly one run each.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -150,7 +151,8 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
                  tensor_dir: str | Path, dataset: str, method: str, seed: int, days_out: str | Path,
                  trajectory_out: str | Path, record_out: str | Path, repo: str | Path,
                  model: str | Path | None = None, manifest: str | Path | None = None,
-                 intensity: str | Path | None = None) -> evaluation.EvalResult:
+                 intensity: str | Path | None = None,
+                 reuse: Mapping[str, str | Path] | None = None) -> evaluation.EvalResult:
     """Evaluate one (dataset, method, seed) job; write days.parquet and trajectory.npz, then their content record
     ``record_out``; track it in MLflow.
 
@@ -160,6 +162,10 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
             trigger.
         display: how the job reports progress (not part of its rerun trigger).
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
+        reuse: {"days", "trajectory", "record"} of the dataset's first seed's evaluation of a method whose result
+            the seed does not change (``dswm.settings.reused_seed``): written again with this seed
+            (``evaluation.reuse_evaluation``, which checks first that it is this job's evaluation), the MLflow run
+            tagged ``reused_from`` with its days.parquet; None: the job evaluates.
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
     training manifest. days.parquet records the model (``dswm.pipeline.setup.model_record``) and the method's
@@ -173,9 +179,20 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
     tensor = load_tensor(tensor_dir)
     with open_run(s, mlflow_cfg=mlflow_cfg, stage="evaluate", dataset=dataset, method=method, seed=seed, repo=repo,
                   keep=[days_out, trajectory_out]) as run:
-        result, record, settings_record = evaluate_controller(
-            run, s, tensor=tensor, tensor_dir=tensor_dir, limits=limits, dataset=dataset, method=method, seed=seed,
-            display=display, model=model, manifest=manifest)
+        if reuse:
+            log_demand_input(run, tensor_dir, dataset, "evaluation")
+            ctrl = build_controller(s, method, seed)
+            settings_record = method_record(s.method, ctrl)
+            result, record = evaluation.reuse_evaluation(
+                reuse, tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
+                limits={"id": limits.id, "ood": limits.ood}, profile=s.job["profile"], method_record=settings_record)
+            run.set_tags({"reused_from": str(reuse["days"])})
+            print(f"{dataset}/{method}/seed{seed}: the seed does not change this method's result; reused "
+                  f"{reuse['days']}", file=sys.stderr, flush=True)
+        else:
+            result, record, settings_record = evaluate_controller(
+                run, s, tensor=tensor, tensor_dir=tensor_dir, limits=limits, dataset=dataset, method=method,
+                seed=seed, display=display, model=model, manifest=manifest)
         evaluation.write_days(result.days, days_out, record, settings_record)
         save_npz(trajectory_out, **result.trajectories)
         logged = [*DAY_METRICS, *evaluation.stat_columns(result.days)]

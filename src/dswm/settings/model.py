@@ -124,6 +124,23 @@ def evaluated_as(settings: Settings, method: str) -> list[str]:
     return [m for m, src in settings.training_sources().items() if src == method] or [method]
 
 
+def reused_seed(settings: Settings, dataset: str, method: str, seed: int) -> int | None:
+    """The seed whose evaluation of ``method`` on ``dataset`` the evaluate job of ``seed`` reuses, or None when the
+    job evaluates on its own.
+
+    With ``evaluation.reuse_seed_independent``, a method whose class says the seed does not change its result
+    (``Controller.deterministic``; no learning method) is evaluated at the dataset's first seed only, and every
+    other seed reuses that evaluation.
+    """
+    if not settings.evaluation.reuse_seed_independent:
+        return None
+    spec = settings.methods[method]
+    first = settings.seeds(dataset)[0]
+    if spec.learns or seed == first or not spec.controller_class.deterministic:
+        return None
+    return first
+
+
 def needs_gpu(settings: Settings, method: str | None) -> bool:
     """True when a job of ``method`` (None: a job without a method) runs torch on a CUDA device: its own ``device``
     setting (the DSWM methods' ``dswm.device``) or ``evaluation.device`` (the environment's) says cuda."""

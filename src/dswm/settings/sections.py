@@ -46,6 +46,9 @@ class EvaluationSettings:
     """Torch threads per job (Snakemake runs one job per core)."""
     batch_days: bool
     """Step all evaluated days of a job as one batch where the controller allows it."""
+    reuse_seed_independent: bool
+    """Evaluate a method whose result the seed does not change (``Controller.deterministic``) once per dataset, at
+    its first seed; the other seeds' evaluate jobs reuse that evaluation (:func:`dswm.settings.reused_seed`)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

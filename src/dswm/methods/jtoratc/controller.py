@@ -174,14 +174,15 @@ class JTORATCController(Controller):
     """JTORATC (Sun et al. 2024) on the current observed map, with the paper's degradation rule.
 
     Not batched: each day solves its own convex programs. No random draw; only the degradation rule reads the
-    clock, and :meth:`day_stats` reports how often it applied.
+    clock, and :meth:`day_stats` reports how often it applied. Not ``deterministic``: the clock may change a day's
+    plan (a first solve within the budget on a faster machine) and changes its solver counts, so every seed's
+    evaluation runs on its own.
 
     Args:
         name, seed, device: see Controller.
         options: the settings.
     """
 
-    deterministic = True
     options_type: ClassVar[type] = JTORATCSettings
 
     def __init__(self, *, name: str, seed: int = 0, device: str = "cpu", options: JTORATCSettings):
