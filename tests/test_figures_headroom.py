@@ -63,8 +63,10 @@ def test_algorithm_1_on_given_maps_takes_dswms_whole_planner_and_rho_0_trains_no
 
 def test_the_headroom_map_runs_greedy_and_perfect_per_cell_and_the_ceiling_once_per_factor(demo):
     jobs = S.headroom_jobs(demo)
-    # the demo's map, u x 1 and x 2: 2 datasets x (2 methods x (4 x 2 - 1) cells + the ceiling at u x 2), seed 0
-    assert len(jobs) == 2 * (2 * 7 + 1)
+    # the demo's map, D_max 250 and 1500 m, u x 1 and x 2: 2 datasets x (2 methods x (2 x 2 - 1) cells + the ceiling
+    # at u x 2), seed 0
+    assert len(jobs) == 2 * (2 * 3 + 1)
+    assert not [j for j in jobs if j[1].startswith(("D500", "D1000"))]
     assert not [j for j in jobs if "u0.5" in j[1]]
     paper = S.headroom_jobs(_settings("paper"))  # all three intensities: Milan 5 seeds, Shanghai 3
     assert len(paper) == (5 + 3) * (2 * 11 + 2) and ("milan", "D250u0.5", "perfect", 4) in paper
