@@ -50,6 +50,14 @@ if _unknown:
     raise WorkflowError(CONFIG_SOURCES.relabel(
         f"config.yaml: key 'resources.rules' names {', '.join(map(repr, _unknown))}, which is no rule of this "
         f"workflow (rules: {', '.join(sorted(r.name for r in workflow.rules))})"))
+# A method that `resources.start_order` names must be one (built-in or under methods.user), run or not.
+from dswm.methods.registry import BUILTIN
+
+_unknown = sorted(set(SETTINGS.resources.start_order) - set(BUILTIN) - set(config["methods"].get("user") or {}))
+if _unknown:
+    raise WorkflowError(CONFIG_SOURCES.relabel(
+        f"config.yaml: key 'resources.start_order' names {', '.join(map(repr, _unknown))}, which is no method "
+        f"(expected built-in ones: {', '.join(sorted(BUILTIN))}, or methods under 'methods.user')"))
 
 
 # The parsed workflow and the libraries its settings import live as long as this process: the cyclic garbage

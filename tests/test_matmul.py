@@ -40,8 +40,11 @@ def test_the_warning_names_the_setting_only_for_emulated_bfloat16_on_a_cpu():
 
 
 def test_a_job_of_a_bfloat16_method_prints_the_warning_to_its_log(capsys):
-    s = runconfig.resolve(load_yaml(ROOT / "config.yaml"))
-    assert s.methods["sac"].options.matmul_dtype == "bfloat16"   # the demo's SAC: bfloat16 products
+    s = runconfig.resolve({**load_yaml(ROOT / "config.yaml"), "profile": "paper"})
+    assert s.methods["sac"].options.matmul_dtype == "bfloat16"   # the paper profile's SAC: bfloat16 products
+    demo = runconfig.resolve(load_yaml(ROOT / "config.yaml"))   # the demo's: float32, which warns of nothing
+    assert warn_emulated_bfloat16(demo.methods["sac"], "cpu", native=False) is None
+    assert warn_emulated_bfloat16(demo.methods["maddpg"], "cpu", native=False) is None
     assert warn_emulated_bfloat16(s.methods["sac"], "cpu", native=False).startswith("methods.sac.matmul_dtype:")
     assert capsys.readouterr().err.startswith("WARNING: methods.sac.matmul_dtype: bfloat16 products")
     assert warn_emulated_bfloat16(s.methods["sac"], "cpu", native=True) is None

@@ -54,3 +54,35 @@ def test_each_rule_asks_for_its_budgets_memory_and_time_and_a_gpu_only_on_cuda()
     # Greedy runs on evaluation.device, still the CPU
     assert gpu[("evaluate", "results/milan/greedy/seed0/days.parquet")]["gpu"] == "0"
     assert gpu[("evaluate", "results/milan/greedy/seed0/days.parquet")].get("slurm_extra", "") == ""
+
+
+def _priorities(*config: str) -> tuple[int, dict[str, str]]:
+    """(return code, {rule and first output: priority}) of a smoke dry run of three main evaluations."""
+    targets = [f"results/milan/{m}/seed0/days.parquet" for m in ("ceiling", "ga_matr", "greedy")]
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--forceall", "--nolock",
+                           "--cores", "2", *targets, "--config", "profile=smoke", *config], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    found = {}
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", proc.stdout + proc.stderr):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+        if head and out:
+            prio = re.search(r"^\s+priority: (\d+)$", block, flags=re.M)
+            found[f"{head.group(1)} {out.group(1)}"] = prio.group(1) if prio else "0"
+    return proc.returncode, found if proc.returncode == 0 else {"error": proc.stdout + proc.stderr}
+
+
+def test_the_methods_of_start_order_start_first_and_a_misspelled_one_is_named():
+    assert load_yaml(ROOT / "config.yaml")["resources"]["start_order"] == ["ceiling", "ga_matr"]
+    rc, found = _priorities()
+    assert rc == 0, found
+    assert found["evaluate results/milan/ceiling/seed0/days.parquet"] == "2"
+    assert found["train results/milan/ga_matr/seed0/model.pt"] == "1"
+    assert found["evaluate results/milan/ga_matr/seed0/days.parquet"] == "1"
+    assert found["evaluate results/milan/greedy/seed0/days.parquet"] == "0"
+    rc, found = _priorities("resources={start_order: [greedy]}")
+    assert rc == 0 and found["evaluate results/milan/greedy/seed0/days.parquet"] == "1", found
+    assert found["evaluate results/milan/ceiling/seed0/days.parquet"] == "0"
+    rc, found = _priorities("resources={start_order: [celing]}")
+    assert rc != 0
+    assert "--config: key 'resources.start_order' names 'celing', which is no method" in found["error"]

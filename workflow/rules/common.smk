@@ -171,6 +171,12 @@ def reused_evaluation(wildcards):
             for name in ("days", "trajectory", "record")}
 
 
+def start_priority(wildcards):
+    """A train or evaluate job's Snakemake priority: resources.start_order's methods first, the first the highest
+    (scheduling only)."""
+    return SETTINGS.resources.priority(wildcards.method)
+
+
 def train_manifests():
     """The training manifest of every train job of the selected profile (one per training source and seed)."""
     return [

@@ -24,6 +24,7 @@ rule evaluate:
     benchmark:
         "results/benchmarks/evaluate/{dataset}/{method}/seed{seed}.tsv"
     threads: 1
+    priority: start_priority  # resources.start_order
     resources:
         **job_resources("evaluate", method="{method}"),
     script:

@@ -51,6 +51,7 @@ rule extra_train:
         variant=_alternatives(EXTRA_VARIANTS),
         method=TRAINED_PATTERN,
     threads: 1
+    priority: start_priority  # resources.start_order
     resources:
         **job_resources("extra_train", method="{method}"),
     script:
@@ -79,6 +80,7 @@ rule extra_evaluate:
     wildcard_constraints:
         variant=_alternatives(EXTRA_VARIANTS),
     threads: 1
+    priority: start_priority  # resources.start_order
     resources:
         **job_resources("extra_evaluate", method="{method}"),
     script:

@@ -28,6 +28,7 @@ rule train:
     wildcard_constraints:
         method=TRAINED_PATTERN,
     threads: 1
+    priority: start_priority  # resources.start_order
     resources:
         **job_resources("train", method="{method}"),
     script:

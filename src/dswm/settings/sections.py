@@ -329,10 +329,19 @@ class ResourceSettings:
     """{rule: its jobs' resources} for the rules that differ from ``default``."""
     gpu_slurm_extra: str
     """sbatch options a training job on a GPU adds (a constraint, a QoS); its GPU itself is the ``gpu`` resource."""
+    start_order: tuple[str, ...] = ()
+    """Methods whose train and evaluate jobs (main and extra) start before the others', the first first
+    (scheduling only)."""
 
     def of(self, rule: str) -> JobResources:
         """The resources of ``rule``'s jobs."""
         return self.rules.get(rule, self.default)
+
+    def priority(self, method: str) -> int:
+        """The Snakemake ``priority`` of ``method``'s train and evaluate jobs: ``len(start_order) - i`` for the i-th
+        method of :attr:`start_order` (higher starts first), 0 for every other method."""
+        order = list(self.start_order)
+        return len(order) - order.index(method) if method in order else 0
 
 
 def resource_settings(config: Mapping[str, Any], profile: str) -> ResourceSettings:
