@@ -7,7 +7,8 @@ from dswm import settings as runconfig
 from dswm.config import load_yaml
 from dswm.methods.classical import GreedyController, StaticController
 from dswm.methods.search import SearchSettings
-from dswm.protocol.evaluation import evaluate, reuse_evaluation, write_days, write_eval_record
+from dswm.protocol.evaluation import evaluate, write_days, write_eval_record
+from dswm.protocol.reuse import reuse_evaluation
 from prep.atomic import save_npz
 from test_evaluation import RUN, toy_tensor
 

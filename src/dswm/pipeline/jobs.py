@@ -36,6 +36,7 @@ from dswm.pipeline.setup import (JobSetup, build_controller, init_process, load_
                                  log_demand_input, method_record, open_run, prepared_files_read, set_up,
                                  training_core)
 from dswm.protocol import calibration, evaluation, selection, tables
+from dswm.protocol.reuse import reuse_evaluation
 from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, Runtime,
                            SelectionSettings)
 from dswm.sim.scenario import Scenario
@@ -164,7 +165,7 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
         reuse: {"days", "trajectory", "record"} of the dataset's first seed's evaluation of a method whose result
             the seed does not change (``dswm.settings.reused_seed``): written again with this seed
-            (``evaluation.reuse_evaluation``, which checks first that it is this job's evaluation), the MLflow run
+            (``dswm.protocol.reuse.reuse_evaluation``, which checks first that it is this job's evaluation), the MLflow run
             tagged ``reused_from`` with its days.parquet; None: the job evaluates.
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
@@ -183,7 +184,7 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
             log_demand_input(run, tensor_dir, dataset, "evaluation")
             ctrl = build_controller(s, method, seed)
             settings_record = method_record(s.method, ctrl)
-            result, record = evaluation.reuse_evaluation(
+            result, record = reuse_evaluation(
                 reuse, tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
                 limits={"id": limits.id, "ood": limits.ood}, profile=s.job["profile"], method_record=settings_record)
             run.set_tags({"reused_from": str(reuse["days"])})
