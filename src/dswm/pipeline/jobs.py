@@ -165,8 +165,8 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
         reuse: {"days", "trajectory", "record"} of the dataset's first seed's evaluation of a method whose result
             the seed does not change (``dswm.settings.reused_seed``): written again with this seed
-            (``dswm.protocol.reuse.reuse_evaluation``, which checks first that it is this job's evaluation), the MLflow run
-            tagged ``reused_from`` with its days.parquet; None: the job evaluates.
+            (``dswm.protocol.reuse.reuse_evaluation``, which checks first that it is this job's evaluation), the
+            MLflow run tagged ``reused_from`` with its days.parquet; None: the job evaluates.
 
     A learning method loads ``model``, the model of its training source, and ``manifest``, that source's
     training manifest. days.parquet records the model (``dswm.pipeline.setup.model_record``) and the method's

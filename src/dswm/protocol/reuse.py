@@ -31,7 +31,8 @@ def reuse_evaluation(source: Mapping[str, str | Path], *, tensor, controller: Co
     Args:
         source: {"days", "trajectory", "record"}: the source evaluation's days.parquet, trajectory.npz and
             content record (:data:`dswm.protocol.evaluation.EVAL_RECORD_FILE`).
-        tensor, controller, scenario, limits, profile: as :func:`dswm.protocol.evaluation.evaluate` (the controller is not run).
+        tensor, controller, scenario, limits, profile: as :func:`dswm.protocol.evaluation.evaluate` (the controller
+            is not run).
         seed: this job's seed.
         method_record: this job's method record (``dswm.pipeline.setup.method_record``).
 
