@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 from dswm.config import ConfigError, build, merge, to_plain, with_budget
 from dswm.settings.model import Settings
+from dswm.settings.sections import start_priority
 from dswm.settings.slices import evaluate_slice, train_slice
 
 
@@ -65,8 +66,7 @@ def learning_methods(settings: Settings, learning: LearningSettings) -> list[str
 def learning_priority(learning: LearningSettings, learners: list[str], method: str) -> int:
     """The Snakemake ``priority`` of ``method``'s learning jobs: ``len(order) - i`` for the i-th drawn learner of
     ``learning.start_order`` (the first the highest), 0 for every other method (higher starts first)."""
-    order = [m for m in learning.start_order if m in learners]
-    return len(order) - order.index(method) if method in order else 0
+    return start_priority([m for m in learning.start_order if m in learners], method)
 
 
 def learning_references(settings: Settings, learning: LearningSettings) -> list[str]:

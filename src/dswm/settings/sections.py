@@ -338,10 +338,16 @@ class ResourceSettings:
         return self.rules.get(rule, self.default)
 
     def priority(self, method: str) -> int:
-        """The Snakemake ``priority`` of ``method``'s train and evaluate jobs: ``len(start_order) - i`` for the i-th
-        method of :attr:`start_order` (higher starts first), 0 for every other method."""
-        order = list(self.start_order)
-        return len(order) - order.index(method) if method in order else 0
+        """The Snakemake ``priority`` of ``method``'s train and evaluate jobs (:func:`start_priority` of
+        :attr:`start_order`)."""
+        return start_priority(self.start_order, method)
+
+
+def start_priority(order, method: str) -> int:
+    """A Snakemake ``priority`` from a start order: ``len(order) - i`` for the i-th method of ``order`` (the first
+    the highest; higher starts first), 0 for a method that is not listed."""
+    order = list(order)
+    return len(order) - order.index(method) if method in order else 0
 
 
 def resource_settings(config: Mapping[str, Any], profile: str) -> ResourceSettings:
