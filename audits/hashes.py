@@ -1,9 +1,8 @@
 """The hashes and evaluated days every result file must carry, recomputed from the settings and meta.json.
 
-The observation-spec hash comes from `dswm.sim.core.obs_spec_hash` on the dataset grid of meta.json and the
-scenario of the settings, the scenario hash from `dswm.sim.scenario.Scenario.hash`, the eval-days hash from
-`dswm.protocol.evaluation.eval_days_hash` of the days the settings pick (cut to the profile's limit), never of
-the days a result file says it evaluated.
+`dswm.protocol.evaluation.result_hashes`, the evaluation's own, computes the three: the observation-spec hash on the
+dataset grid of meta.json and the scenario of the settings, the scenario hash, and the eval-days hash of the days the
+settings pick (cut to the profile's limit), never of the days a result file says it evaluated.
 """
 from __future__ import annotations
 
@@ -31,11 +30,7 @@ def expected_result_days(ctx: AuditContext, ds: str) -> dict[str, list[int]]:
 
 def expected_hashes(ctx: AuditContext, ds: str) -> dict[str, str]:
     """{"obs_spec_hash", "eval_days_hash", "scenario_hash"} a result file of dataset `ds` must carry."""
-    from dswm.protocol.evaluation import eval_days_hash
-    from dswm.sim.core import obs_spec_hash
+    from dswm.protocol.evaluation import result_hashes
 
-    days = expected_result_days(ctx, ds)
     labels = [d["label"] for d in ctx.meta(ds)["days"]]
-    eval_hash = eval_days_hash(ds, days, labels)
-    return {"obs_spec_hash": obs_spec_hash(_grid(ctx, ds), ctx.scenario), "eval_days_hash": eval_hash,
-            "scenario_hash": ctx.scenario.hash()}
+    return result_hashes(ds, _grid(ctx, ds), ctx.scenario, expected_result_days(ctx, ds), labels)

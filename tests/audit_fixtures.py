@@ -137,16 +137,15 @@ def _limits(settings: Settings) -> dict[str, int | None]:
 
 
 def _hashes(settings: Settings, root: Path, ds: str):
-    from dswm.protocol.evaluation import eval_days, eval_days_hash
-    from dswm.sim.core import Grid, obs_spec_hash
+    from dswm.protocol.evaluation import eval_days, result_hashes
+    from dswm.sim.core import Grid
     from prep.tensor import load
 
     scenario = settings.scenario
     t = load(root / "results" / "data" / ds)
     grid = Grid(rows=t.grid.rows, cols=t.grid.cols, cell_m=t.grid.cell_m)
     ev = eval_days(t, _limits(settings))
-    return scenario, t, grid, ev, {"obs_spec_hash": obs_spec_hash(grid, scenario),
-                                   "eval_days_hash": eval_days_hash(ds, ev, t.labels), "scenario_hash": scenario.hash()}
+    return scenario, t, grid, ev, result_hashes(ds, grid, scenario, ev, t.labels)
 
 
 def evaluate_static(settings: Settings, root: Path, ds: str, seed: int) -> Path:

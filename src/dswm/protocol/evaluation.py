@@ -31,7 +31,7 @@ from prep.atomic import atomic_path
 from dswm.config import stable_hash
 from dswm.sim.scenario import Scenario
 from dswm.methods.base import Controller, DayContext
-from dswm.sim.core import core_from_tensor, obs_spec_hash
+from dswm.sim.core import Grid, core_from_tensor, obs_spec_hash
 
 DAY_COLUMNS = ["day", "label", "split", "sr_mean", "energy_kj_per_slot", "energy_efficiency", "jain",
                "plan_ms_per_slot", "obs_spec_hash", "eval_days_hash", "scenario_hash", "seed", "method",
@@ -85,6 +85,15 @@ def eval_days(tensor, limits: Mapping[str, int | None]) -> dict[str, list[int]]:
 def eval_days_hash(dataset: str, days: Mapping[str, list[int]], labels: list[str]) -> str:
     """Hash of the evaluated days (indices and labels per split); the audit compares it across methods."""
     return stable_hash({"dataset": dataset, **{s: [[d, labels[d]] for d in days[s]] for s in days}})
+
+
+def result_hashes(dataset: str, grid: Grid, scenario: Scenario, days: Mapping[str, list[int]],
+                  labels: list[str]) -> dict[str, str]:
+    """The three hashes every days.parquet carries, {"obs_spec_hash", "eval_days_hash", "scenario_hash"}: of the
+    observation spec on ``grid``, of the evaluated ``days`` and of the scenario. The
+    evaluation writes them, a reused evaluation and the audit (``audits.hashes``) check them against these."""
+    return {"obs_spec_hash": obs_spec_hash(grid, scenario), "eval_days_hash": eval_days_hash(dataset, days, labels),
+            "scenario_hash": scenario.hash()}
 
 
 def check_demand_in_every_slot(tensor, days: Mapping[str, list[int]]) -> None:
@@ -203,9 +212,8 @@ def evaluate(*, tensor, controller: Controller, scenario: Scenario, seed: int, l
                 traj.update({f"{split}_pos": pos_a[b].astype(np.float32), f"{split}_status": status_a[b],
                              f"{split}_day": np.int64(day), f"{split}_label": np.str_(labels[day])})
     bar.close()
-    const = {"obs_spec_hash": obs_spec_hash(grid, scenario), "eval_days_hash": eval_days_hash(dataset, days, labels),
-             "scenario_hash": scenario.hash(), "seed": seed, "method": controller.name, "dataset": dataset,
-             "profile": profile, "data_source": str(tensor.meta["source"])}
+    const = {**result_hashes(dataset, grid, scenario, days, labels), "seed": seed, "method": controller.name,
+             "dataset": dataset, "profile": profile, "data_source": str(tensor.meta["source"])}
     stat_cols = sorted({c for r in rows for c in r if c.startswith(STAT_PREFIX)})
     df = pl.DataFrame([{**dict.fromkeys(stat_cols), **r, **const} for r in rows]).select(DAY_COLUMNS + stat_cols)
     df = df.with_columns(pl.col("day").cast(pl.Int32), pl.col("seed").cast(pl.Int32),

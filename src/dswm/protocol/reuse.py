@@ -10,9 +10,8 @@ import numpy as np
 import polars as pl
 
 from dswm.methods.base import Controller
-from dswm.protocol.evaluation import (EvalResult, eval_days, eval_days_hash, read_method_record,
-                                      read_model_record)
-from dswm.sim.core import grid_of, obs_spec_hash
+from dswm.protocol.evaluation import EvalResult, eval_days, read_method_record, read_model_record, result_hashes
+from dswm.sim.core import grid_of
 from dswm.sim.scenario import Scenario
 
 
@@ -59,8 +58,7 @@ def reuse_evaluation(source: Mapping[str, str | Path], *, tensor, controller: Co
     dataset = tensor.meta["dataset"]
     evaluated = eval_days(tensor, limits)
     want = {"method": controller.name, "dataset": dataset, "profile": profile,
-            "obs_spec_hash": obs_spec_hash(grid_of(tensor), scenario),
-            "eval_days_hash": eval_days_hash(dataset, evaluated, tensor.labels), "scenario_hash": scenario.hash()}
+            **result_hashes(dataset, grid_of(tensor), scenario, evaluated, tensor.labels)}
     for column, value in want.items():
         found = sorted(set(map(str, days[column].to_list()))) if column in days.columns else []
         if found != [str(value)]:
