@@ -4,10 +4,9 @@ from pathlib import Path
 
 sys.stderr = open(snakemake.log[0], "w", buffering=1)  # noqa: F821 (injected by Snakemake)
 
-from dswm.pipeline.jobs import evaluate_job
+from dswm.pipeline.jobs import evaluate_job, reused_inputs
 from dswm.settings import read_param
 
-REUSE = ("days", "trajectory", "record")
 w, inp, p = snakemake.wildcards, snakemake.input, snakemake.params  # noqa: F821
 evaluate_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, display=p.display.value,
              tensor_dir=Path(inp.tensor).parent, dataset=w.dataset, method=w.method, seed=int(w.seed),
@@ -17,4 +16,4 @@ evaluate_job(job=read_param(p.settings), mlflow_cfg=p.tracking.value, display=p.
              manifest=inp.get("manifest"), repo=snakemake.scriptdir + "/../..",  # noqa: F821
              intensity=inp.get("intensity"),  # the calibrate rule's record, or None
              # the first seed's evaluation, for a method the seed does not change (dswm.settings.reused_seed)
-             reuse={k: inp[f"reuse_{k}"] for k in REUSE} if "reuse_days" in inp.keys() else None)
+             reuse=reused_inputs(inp))

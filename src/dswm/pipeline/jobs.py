@@ -148,6 +148,15 @@ def finish_training(run: tracking.JobRun, ctrl: Controller, manifest: dict, *, m
     return manifest
 
 
+REUSED_FILES = ("days", "trajectory", "record")
+"""The files of a reused evaluation, Snakemake inputs ``reuse_<name>`` (workflow/rules/common.smk reused_evaluation)."""
+
+
+def reused_inputs(inputs) -> dict[str, str] | None:
+    """{"days", "trajectory", "record"} of the evaluation a job's Snakemake ``inputs`` name to reuse, or None."""
+    return {k: inputs[f"reuse_{k}"] for k in REUSED_FILES} if "reuse_days" in inputs.keys() else None
+
+
 def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], display: Display,
                  tensor_dir: str | Path, dataset: str, method: str, seed: int, days_out: str | Path,
                  trajectory_out: str | Path, record_out: str | Path, repo: str | Path,
@@ -180,20 +189,9 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
     tensor = load_tensor(tensor_dir)
     with open_run(s, mlflow_cfg=mlflow_cfg, stage="evaluate", dataset=dataset, method=method, seed=seed, repo=repo,
                   keep=[days_out, trajectory_out]) as run:
-        if reuse:
-            log_demand_input(run, tensor_dir, dataset, "evaluation")
-            ctrl = build_controller(s, method, seed)
-            settings_record = method_record(s.method, ctrl)
-            result, record = reuse_evaluation(
-                reuse, tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
-                limits={"id": limits.id, "ood": limits.ood}, profile=s.job["profile"], method_record=settings_record)
-            run.set_tags({"reused_from": str(reuse["days"])})
-            print(f"{dataset}/{method}/seed{seed}: the seed does not change this method's result; reused "
-                  f"{reuse['days']}", file=sys.stderr, flush=True)
-        else:
-            result, record, settings_record = evaluate_controller(
-                run, s, tensor=tensor, tensor_dir=tensor_dir, limits=limits, dataset=dataset, method=method,
-                seed=seed, display=display, model=model, manifest=manifest)
+        result, record, settings_record = evaluate_controller(
+            run, s, tensor=tensor, tensor_dir=tensor_dir, limits=limits, dataset=dataset, method=method, seed=seed,
+            display=display, model=model, manifest=manifest, reuse=reuse)
         evaluation.write_days(result.days, days_out, record, settings_record)
         save_npz(trajectory_out, **result.trajectories)
         logged = [*DAY_METRICS, *evaluation.stat_columns(result.days)]
@@ -210,22 +208,32 @@ def evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any], displ
 
 def evaluate_controller(run: tracking.JobRun, s: JobSetup, *, tensor, tensor_dir: str | Path, limits: EvalDayLimits,
                         dataset: str, method: str, seed: int, display: Display, model: str | Path | None,
-                        manifest: str | Path | None,
-                        what: str | None = None) -> tuple[evaluation.EvalResult, dict, dict]:
+                        manifest: str | Path | None, what: str | None = None,
+                        reuse: Mapping[str, str | Path] | None = None) -> tuple[evaluation.EvalResult, dict, dict]:
     """What every evaluate job does inside its run: record the demand tensor as the run's input, build the
     controller, load its training source's model (:func:`dswm.pipeline.setup.load_source_model`; ``what`` names
-    the job in its error) and evaluate it on the days of ``limits`` (the slice's ``eval_days``).
+    the job in its error) and evaluate it on the days of ``limits`` (the slice's ``eval_days``); or, given
+    ``reuse`` (see :func:`evaluate_job`), take that evaluation at this seed instead
+    (:func:`dswm.protocol.reuse.reuse_evaluation`) and tag the run ``reused_from``.
 
     Returns:
         (the evaluation, the model record, the method record (:func:`dswm.pipeline.setup.method_record`)).
     """
     log_demand_input(run, tensor_dir, dataset, "evaluation")
     ctrl = build_controller(s, method, seed)
+    day_limits = {"id": limits.id, "ood": limits.ood}
+    if reuse:
+        settings_record = method_record(s.method, ctrl)
+        result, record = reuse_evaluation(reuse, tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
+                                          limits=day_limits, profile=s.job["profile"], method_record=settings_record)
+        run.set_tags({"reused_from": str(reuse["days"])})
+        print(f"{dataset}/{method}/seed{seed}: the seed does not change this method's result; reused "
+              f"{reuse['days']}", file=sys.stderr, flush=True)
+        return result, record, settings_record
     record = load_source_model(run, ctrl, s.method, model=model, manifest=manifest, what=what)
     settings_record = method_record(s.method, ctrl)
-    result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed,
-                                 limits={"id": limits.id, "ood": limits.ood}, profile=s.job["profile"],
-                                 device=s.settings.device, batch_days=s.settings.batch_days,
+    result = evaluation.evaluate(tensor=tensor, controller=ctrl, scenario=s.scenario, seed=seed, limits=day_limits,
+                                 profile=s.job["profile"], device=s.settings.device, batch_days=s.settings.batch_days,
                                  progress_interval_s=display.progress_mininterval_s)
     return result, record, settings_record
 
