@@ -1,4 +1,9 @@
 """Methods whose result the seed does not change are evaluated once per dataset: evaluation.reuse_seed_independent."""
+import re
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import polars as pl
 import pytest
@@ -59,6 +64,36 @@ def test_only_the_later_seeds_of_a_deterministic_method_reuse_and_only_when_the_
     bad = {**config, "evaluation": {**config["evaluation"], "reuse_seed_independent": "yes"}}
     with pytest.raises(runconfig.ConfigError, match="evaluation.reuse_seed_independent' must be true or false"):
         runconfig.validate_config(bad, runconfig.load_schema(runconfig.SCHEMA))
+
+
+def _job_inputs(text: str) -> dict[str, list[str]]:
+    """{rule and first output: input files} of every job block of a dry run."""
+    found = {}
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", text):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+        inp = re.search(r"^\s+input: (.+)$", block, flags=re.M)
+        if head and out:
+            found[f"{head.group(1)} {out.group(1)}"] = inp.group(1).split(", ") if inp else []
+    return found
+
+
+def test_the_workflow_gives_a_later_seeds_job_the_first_seeds_evaluation_main_and_extra():
+    """In the DAG (a smoke dry run with Milan seeds 0 and 1 in the profile and the figures): the evaluate and the
+    extra_evaluate job of seed 1 of a deterministic method read seed 0's three files; a learning method's do not."""
+    targets = [f"results/{sub}/{m}/seed1/days.parquet" for sub in ("milan", "extra/milan/u2") for m in ("static", "dswm")]
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--forceall", "--nolock",
+                           "--cores", "2", *targets, "--config", "profile=smoke",
+                           "profiles={smoke: {seeds: {milan: [0, 1]}}}", "figures={budgets: {smoke: {seeds: [0, 1]}}}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    jobs = _job_inputs(proc.stdout + proc.stderr)
+    for rule, sub in (("evaluate", "milan"), ("extra_evaluate", "extra/milan/u2")):
+        first = f"results/{sub}/static/seed0"
+        assert {f"{first}/days.parquet", f"{first}/trajectory.npz", f"{first}/eval_manifest.json"} <= \
+            set(jobs[f"{rule} results/{sub}/static/seed1/days.parquet"]), rule
+        assert f"{rule} {first}/days.parquet" in jobs      # which the dry run schedules first
+        assert not [f for f in jobs[f"{rule} results/{sub}/dswm/seed1/days.parquet"] if "seed0" in f], rule
 
 
 def _source(tmp_path, tensor, scenario, ctl):

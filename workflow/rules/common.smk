@@ -160,15 +160,17 @@ def trained_model(wildcards):
     }
 
 
-def reused_evaluation(wildcards):
+def reused_evaluation(wildcards, outputs=None, seeds=None):
     """The evaluation an evaluate job reuses: the result files of its dataset's first seed, for a method whose result
-    the seed does not change (evaluation.reuse_seed_independent; dswm.settings.reused_seed); none otherwise."""
-    first = S.reused_seed(SETTINGS, wildcards.dataset, wildcards.method, int(wildcards.seed))
+    the seed does not change (evaluation.reuse_seed_independent; dswm.settings.reused_seed); none otherwise.
+    ``outputs``: the rule's output files (default: the evaluate rule's), ``seeds``: the seeds the rule runs (default:
+    the profile's of the dataset)."""
+    first = S.reused_seed(SETTINGS, wildcards.dataset, wildcards.method, int(wildcards.seed), seeds)
     if first is None:
         return {}
     source = {**dict(wildcards.items()), "seed": first}
-    return {f"reuse_{name}": getattr(rules.evaluate.output, name).format(**source)
-            for name in ("days", "trajectory", "record")}
+    outputs = rules.evaluate.output if outputs is None else outputs
+    return {f"reuse_{name}": getattr(outputs, name).format(**source) for name in ("days", "trajectory", "record")}
 
 
 def start_priority(wildcards):

@@ -61,6 +61,8 @@ rule extra_train:
 rule extra_evaluate:
     input:
         unpack(extra_model),
+        # the first seed's extra run, for a method the seed does not change (dswm.settings.reused_seed)
+        unpack(lambda wc: reused_evaluation(wc, rules.extra_evaluate.output, S.figure_seeds(SETTINGS, wc.dataset))),
         tensor=rules.prepare.output.tensor,
         meta=rules.prepare.output.meta,
         mlflow=rules.mlflow_init.output.marker,

@@ -64,8 +64,8 @@ def extra_evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
                        tensor_dir: str | Path, dataset: str, method: str, seed: int, days_out: str | Path,
                        trajectory_out: str | Path,
                        record_out: str | Path, repo: str | Path, model: str | Path | None = None,
-                       manifest: str | Path | None = None,
-                       intensity: str | Path | None = None) -> evaluation.EvalResult:
+                       manifest: str | Path | None = None, intensity: str | Path | None = None,
+                       reuse: Mapping[str, str | Path] | None = None) -> evaluation.EvalResult:
     """Evaluate one (dataset, method, seed) under an extra run's variant on the days of ``figures.eval_days``;
     write days.parquet, trajectory.npz and their content record as ``dswm.pipeline.jobs.evaluate_job`` does.
 
@@ -76,6 +76,8 @@ def extra_evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
         model, manifest: the model of the method's training source, trained by the main ``train`` rule when the
             variant's train slice is the main one's (a do variant), else by ``extra_train``.
         intensity: the calibrate rule's record, when ``scenario.demand_intensity`` is ``calibrate``.
+        reuse: the same variant's run at the first of ``figures.seeds``, for a method whose result the seed does
+            not change (as :func:`dswm.pipeline.jobs.evaluate_job`'s).
     """
     s = set_up(job, "evaluation", EvaluationSettings, intensity)
     limits = build(EvalDayLimits, s.job["eval_days"], "eval_days")
@@ -85,7 +87,7 @@ def extra_evaluate_job(*, job: Mapping[str, Any], mlflow_cfg: Mapping[str, Any],
         run.set_tags({"stage": "extra", "variant": variant, "extra_job": "evaluate"})
         result, record, settings_record = evaluate_controller(
             run, s, tensor=tensor, tensor_dir=tensor_dir, limits=limits, dataset=dataset, method=method, seed=seed,
-            display=display, model=model, manifest=manifest, what=f"{method} ({variant})")
+            display=display, model=model, manifest=manifest, what=f"{method} ({variant})", reuse=reuse)
         days = result.days.with_columns(pl.lit(variant).alias("variant"))
         evaluation.write_days(days, days_out, record, settings_record)
         save_npz(trajectory_out, **result.trajectories)

@@ -5,7 +5,7 @@ ask of them.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from dswm.config import build, stable_hash, to_plain
 from dswm.methods import registry
@@ -124,18 +124,19 @@ def evaluated_as(settings: Settings, method: str) -> list[str]:
     return [m for m, src in settings.training_sources().items() if src == method] or [method]
 
 
-def reused_seed(settings: Settings, dataset: str, method: str, seed: int) -> int | None:
+def reused_seed(settings: Settings, dataset: str, method: str, seed: int,
+                seeds: Sequence[int] | None = None) -> int | None:
     """The seed whose evaluation of ``method`` on ``dataset`` the evaluate job of ``seed`` reuses, or None when the
     job evaluates on its own.
 
     With ``evaluation.reuse_seed_independent``, a method whose class says the seed does not change its result
-    (``Controller.deterministic``; no learning method) is evaluated at the dataset's first seed only, and every
-    other seed reuses that evaluation.
+    (``Controller.deterministic``; no learning method) is evaluated at the first of ``seeds`` only (None: the
+    profile's seeds of ``dataset``; an extra run's: ``figure_seeds``), and every other seed reuses that evaluation.
     """
     if not settings.evaluation.reuse_seed_independent:
         return None
     spec = settings.methods[method]
-    first = settings.seeds(dataset)[0]
+    first = (settings.seeds(dataset) if seeds is None else list(seeds))[0]
     if spec.learns or seed == first or not spec.controller_class.deterministic:
         return None
     return first
