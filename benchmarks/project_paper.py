@@ -26,7 +26,9 @@ in seconds of one core:
 * everything else (the other evaluations, prepare, calibrate, eda, audit, tables): the seconds (``s``) of the same
   job's benchmark file in ``--measured`` (a finished run's ``results/benchmarks``; another seed's when that seed did
   not run there), evaluations scaled by the paper's test days over the days that run evaluated
-  (``--measured-profile``); a job with no measured file counts :data:`DEFAULT_S` seconds.
+  (``--measured-profile``); a job with no measured file counts :data:`DEFAULT_S` seconds. An evaluation that
+  reuses another seed's (``evaluation.reuse_seed_independent``: a method the seed does not change, at any seed but
+  the dataset's first) costs what the measured run's reused evaluations cost, unscaled.
 
 One job holds one core (as the workflow runs them); core-hours are the sum over jobs. The rates are one machine's
 (its load is in the rates file); the range is that of the rates' repeats, not of the machine.
@@ -41,7 +43,7 @@ import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
-from typing import Iterable, Mapping, NamedTuple, Sequence
+from typing import Callable, Iterable, Mapping, NamedTuple, Sequence
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -205,25 +207,52 @@ def job_seconds(job: Job, *, rates, work, days, measured, tdmpc_parallel: int, c
         slot_s = tdmpc_parallel / rate(rates, "tdmpc", "play.transitions_per_second", case)
         return DAY * slot_s, "TD-MPC MPPI step"
     found = measured(job)
-    if found is not None:
-        return found, "benchmark file"
-    return DEFAULT_S, "default"
+    return found if found is not None else (DEFAULT_S, "default")
 
 
-def measured_lookup(root: Path | None, *, scale: Mapping[str, float]):
-    """A function job -> seconds from the benchmark files under ``root`` (the job's own, else the median over the
-    same path with any seed), evaluations x ``scale[dataset]``; None where nothing was measured."""
-    def lookup(job: Job) -> float | None:
+Reused = Callable[[str, str, int], bool]
+"""(dataset, method, seed) -> whether that evaluate job reuses another seed's evaluation (``dswm.settings.reused_seed``
+under one profile's settings)."""
+
+
+def measured_lookup(root: Path | None, *, scale: Mapping[str, float], reused_paper: Reused | None = None,
+                    reused_measured: Reused | None = None):
+    """A function job -> (seconds, how) from the benchmark files under ``root`` (the job's own, else the median over
+    the same path with any seed), evaluations x ``scale[dataset]``; None where nothing was measured.
+
+    An evaluate job that reuses another seed's evaluation (``reused_paper``; ``evaluation.reuse_seed_independent``)
+    only checks and rewrites that seed's files: it takes the measured files of reused evaluations of its method
+    (``reused_measured`` says which, under the measured run's profile; on any dataset where its own has none),
+    unscaled, as they read no day; any other evaluate job takes those of evaluations that ran. Without the two
+    functions no job counts as reused."""
+    def lookup(job: Job) -> tuple[float, str] | None:
         if root is None or job.benchmark is None:
             return None
         rel = Path(job.benchmark).relative_to("results/benchmarks") if job.benchmark.startswith("results/") \
             else Path(job.benchmark)
-        paths = [root / rel] if (root / rel).is_file() else sorted(root.glob(re.sub(r"seed\d+", "seed*", str(rel))))
-        values = [read_seconds(p) for p in paths]
-        if not values:
+        w = job.wildcards
+        evaluates = job.rule == "evaluate" and "seed" in w and "method" in w
+        reuses = bool(evaluates and reused_paper and reused_paper(w["dataset"], w["method"], int(w["seed"])))
+
+        def same_kind(path: Path) -> bool:     # evaluate/<dataset>/<method>/seed<seed>.tsv
+            if not evaluates or reused_measured is None:
+                return True
+            seed = int(re.fullmatch(r"seed(\d+)\.tsv", path.name).group(1))
+            return reused_measured(path.parts[-3], w["method"], seed) == reuses
+
+        own = root / rel
+        pattern = re.sub(r"seed\d+", "seed*", str(rel))
+        if reuses:    # a reuse reads no day: the method's reused evaluations on any dataset
+            pattern = re.sub(rf"^evaluate/{re.escape(w['dataset'])}/", "evaluate/*/", pattern)
+        paths = [own] if own.is_file() and same_kind(own) else \
+            [p for p in sorted(root.glob(pattern)) if same_kind(p)]
+        if not paths:
             return None
-        factor = scale.get(job.wildcards.get("dataset"), 1.0) if job.rule == "evaluate" else 1.0
-        return statistics.median(values) * factor
+        value = statistics.median(read_seconds(p) for p in paths)
+        if reuses:
+            return value, "benchmark file (reused seed)"
+        factor = scale.get(w.get("dataset"), 1.0) if job.rule == "evaluate" else 1.0
+        return value * factor, "benchmark file"
 
     return lookup
 
@@ -290,12 +319,15 @@ def main() -> None:
     rates, rate_notes = merge_rates([(str(p.relative_to(ROOT) if p.is_relative_to(ROOT) else p),
                                       json.loads(p.read_text())) for p in files])
     settings = runconfig.resolve({**config, "profile": "paper"})
+    there = runconfig.resolve({**config, "profile": args.measured_profile})
     jobs = parse_dryrun(args.jobs.read_text()) if args.jobs else dag_jobs(args.target)
     days = eval_days(config)
     root = args.measured if args.measured.is_dir() else None
     scale = {ds: days[ds] / day_limit(config, args.measured_profile, ds) for ds in days}
     rows = project(jobs, rates=rates, work=train_work(settings), days=days,
-                   measured=measured_lookup(root, scale=scale),
+                   measured=measured_lookup(root, scale=scale,
+                                            reused_paper=lambda *k: runconfig.reused_seed(settings, *k) is not None,
+                                            reused_measured=lambda *k: runconfig.reused_seed(there, *k) is not None),
                    tdmpc_parallel=settings.methods["tdmpc"].options.parallel)
     notes = [*rate_notes,
              f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`",

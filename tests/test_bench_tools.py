@@ -121,6 +121,31 @@ def test_projection_adds_each_jobs_work_over_its_measured_rate(tmp_path):
     assert "train (all)" in text and "evaluate (all)" in text
 
 
+def test_a_reused_evaluation_costs_what_the_measured_runs_reused_ones_cost(tmp_path):
+    bench = tmp_path / "benchmarks" / "evaluate" / "milan" / "ceiling"
+    bench.mkdir(parents=True)
+    for seed, s in ((0, 400.0), (1, 6.0), (2, 8.0)):     # seeds 1 and 2 reused seed 0's evaluation there
+        (bench / f"seed{seed}.tsv").write_text(f"s\th:m:s\tmax_rss\n{s}\t0:00:30\t600.0\n")
+    reused = lambda ds, method, seed: seed > 0     # noqa: E731  (the dataset's first seed is 0 in both profiles)
+    lookup = pp.measured_lookup(tmp_path / "benchmarks", scale={"milan": 7 / 3}, reused_paper=reused,
+                                reused_measured=reused)
+    # seed 0 evaluates: its own file, scaled to the paper's days; seed 4 reuses: the median of the reused ones
+    # (not the median over all seeds, 8 s), unscaled
+    assert lookup(job("evaluate", "milan", "ceiling", 0)) == (pytest.approx(400.0 * 7 / 3), "benchmark file")
+    assert lookup(job("evaluate", "milan", "ceiling", 4)) == (7.0, "benchmark file (reused seed)")
+    assert lookup(job("evaluate", "milan", "ceiling", 1)) == (6.0, "benchmark file (reused seed)")   # its own
+    # a seed the paper profile evaluates but the measured run reused takes the runs that evaluated
+    own = pp.measured_lookup(tmp_path / "benchmarks", scale={"milan": 7 / 3}, reused_paper=lambda *k: False,
+                             reused_measured=reused)
+    assert own(job("evaluate", "milan", "ceiling", 1)) == (pytest.approx(400.0 * 7 / 3), "benchmark file")
+    # a dataset whose reused evaluations did not run there takes the other datasets' reused ones
+    assert lookup(job("evaluate", "shanghai", "ceiling", 2)) == (7.0, "benchmark file (reused seed)")
+    assert lookup(job("evaluate", "shanghai", "ceiling", 0)) is None    # nothing evaluated it there
+    # without the two functions, as before: any seed's file, every job scaled
+    plain = pp.measured_lookup(tmp_path / "benchmarks", scale={"milan": 7 / 3})
+    assert plain(job("evaluate", "milan", "ceiling", 4)) == (pytest.approx(8.0 * 7 / 3), "benchmark file")
+
+
 def test_a_later_rates_file_replaces_only_the_learners_it_measured():
     trees = {"trees": {"current": {"rev": "a" * 40}}, "machine": {"cpus": 2, "load_avg_1min": 0.5}}
     again = {"profile": "paper", **trees,
