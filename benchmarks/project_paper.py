@@ -1,7 +1,7 @@
 """Projected core-hours of the paper profile, from measured rates and the DAG's job list.
 
 Run: python benchmarks/project_paper.py [--rates benchmarks/results/learners_cpu_t1.json [--rates more.json]]
-         [--target tables] [--measured results/benchmarks --measured-profile demo]
+         [--target tables] [--after TARGET] [--measured results/benchmarks --measured-profile demo]
 Prints one row per rule and method (jobs, core-hours at the median rates, and at the fastest and the slowest
 repeat), a subtotal per rule, the assumptions, and last a line ``total: N core-hours``.
 
@@ -29,6 +29,13 @@ in seconds of one core:
   (``--measured-profile``); a job with no measured file counts :data:`DEFAULT_S` seconds. An evaluation that
   reuses another seed's (``evaluation.reuse_seed_independent``: a method the seed does not change, at any seed but
   the dataset's first) costs what the measured run's reused evaluations cost, unscaled.
+* the figures' jobs (``--target figures``; ``--after tables`` leaves out the jobs that ``tables`` runs):
+  ``extra_train`` as the main train job of its method; ``extra_evaluate`` of a planner: the run's test days
+  (``dswm.settings.variant_days``) x 143 x DSWM's plan ms, of another method: the measured extra runs of that method
+  on that dataset (the same variant's, else any variant's) in seconds per day they evaluated, x the run's days (a
+  reuse as a reused main evaluation); ``probe`` of a planner: ``figures.sample_efficiency.fractions`` snapshots x
+  one day (143 decisions) x DSWM's plan ms (TD-MPC's: x its MPPI step of one day), of another method its measured
+  file; ``wm_quality`` and the figure rules their measured files.
 
 One job holds one core (as the workflow runs them); core-hours are the sum over jobs. The rates are one machine's
 (its load is in the rates file); the range is that of the rates' repeats, not of the machine.
@@ -137,12 +144,27 @@ def eval_days(config: Mapping) -> dict[str, int]:
 
 def day_limit(config: Mapping, profile: str, dataset: str) -> int:
     """Test days an evaluation job of ``profile`` plans on ``dataset`` (its eval_days limits, else every day)."""
-    spec = config["datasets"][dataset]["eval_days"]
-    limits = config["profiles"][profile]["eval_days"]
+    return split_days(config, dataset, config["profiles"][profile]["eval_days"])
+
+
+def split_days(config: Mapping, dataset: str, limits: Mapping[str, int | None]) -> int:
+    """Test days of ``dataset`` that ``limits`` ({split: at most this many, None: all}) keep."""
     days = 0
-    for split, s in spec.items():
+    for split, s in config["datasets"][dataset]["eval_days"].items():
         n = len(s["values"]) if s["rule"] == "test_positions" else s["count"]
         days += n if limits.get(split) is None else min(n, limits[split])
+    return days
+
+
+def extra_days(config: Mapping, settings) -> Callable[[str, str], int]:
+    """(dataset, variant name) -> test days an extra run plans under ``settings``' profile (``figures.eval_days``,
+    or the foresight grid's or the headroom map's: ``dswm.settings.variant_days``)."""
+    from dswm import settings as S
+
+    def days(dataset: str, variant: str) -> int:
+        lim = S.variant_days(settings, S.parse_variant(variant))
+        return split_days(config, dataset, {"id": lim.id, "ood": lim.ood})
+
     return days
 
 
@@ -191,16 +213,27 @@ def train_seconds(work: Mapping[str, float], rates: Mapping, learner: str, case:
     return sum(w / rate(rates, learner, key, case) for key, w in work.items() if w)
 
 
-def job_seconds(job: Job, *, rates, work, days, measured, tdmpc_parallel: int, case: str) -> tuple[float, str]:
-    """(seconds, how) of one job at ``case``."""
+def job_seconds(job: Job, *, rates, work, days, measured, tdmpc_parallel: int, case: str,
+                extra: Extras | None = None) -> tuple[float, str]:
+    """(seconds, how) of one job at ``case``; ``extra``: how the figures' jobs are costed (None: as any other job)."""
     w = job.wildcards
     method = w.get("method")
-    if job.rule == "train" and method in WORLD_MODELS:
+    if job.rule in ("train", "extra_train") and method in WORLD_MODELS:
         return train_seconds(work["dswm_world_model"], rates, "dswm_world_model", case), "measured rates"
-    if job.rule == "train" and method in work:
+    if job.rule in ("train", "extra_train") and method in work:
         return train_seconds(work[method], rates, method, case), "measured rates"
     if job.rule == "evaluate" and method in PLANNERS:
         return days[w["dataset"]] * DAY * plan_ms(rates, "dswm", case) / 1e3, "DSWM plan ms"
+    if extra is not None and job.rule == "extra_evaluate":
+        if method in PLANNERS:
+            return extra.days(w["dataset"], w["variant"]) * DAY * plan_ms(rates, "dswm", case) / 1e3, "DSWM plan ms"
+        found = extra.measured(job)
+        return found if found is not None else (DEFAULT_S, "default")
+    if extra is not None and job.rule == "probe" and method in PLANNERS:
+        return extra.probe_points * DAY * plan_ms(rates, "dswm", case) / 1e3, "DSWM plan ms"
+    if extra is not None and job.rule == "probe" and method == "tdmpc":
+        return extra.probe_points * DAY / rate(rates, "tdmpc", "play.transitions_per_second", case), \
+            "TD-MPC MPPI step"
     if job.rule == "evaluate" and method == "jtoratc":
         return days[w["dataset"]] * DAY * plan_ms(rates, "jtoratc_full_solve", case) / 1e3, "JTORATC solve ms"
     if job.rule == "evaluate" and method == "tdmpc":
@@ -213,6 +246,47 @@ def job_seconds(job: Job, *, rates, work, days, measured, tdmpc_parallel: int, c
 Reused = Callable[[str, str, int], bool]
 """(dataset, method, seed) -> whether that evaluate job reuses another seed's evaluation (``dswm.settings.reused_seed``
 under one profile's settings)."""
+
+
+class Extras(NamedTuple):
+    """How the figures' jobs are costed (``--target figures``)."""
+    days: Callable[[str, str], int]
+    """(dataset, variant name) -> the paper's test days of an extra run (:func:`extra_days`)."""
+    measured: Callable[[Job], tuple[float, str] | None]
+    """An extra run of a method that does not plan: :func:`extra_lookup`."""
+    probe_points: int
+    """Snapshots a probe job scores on its one day (``figures.sample_efficiency.fractions``)."""
+
+
+def extra_lookup(root: Path | None, *, paper_days: Callable[[str, str], int],
+                 measured_days: Callable[[str, str], int], reused_paper: Reused | None = None,
+                 reused_measured: Reused | None = None, main: Callable[[Job], tuple[float, str] | None] | None = None):
+    """A function extra_evaluate job -> (seconds, how): the measured extra runs of its method on its dataset (its own
+    variant's, else any variant's; none that reused another seed's, ``reused_measured``) under ``root``, per day they
+    evaluated (``measured_days``), times the days the job plans (``paper_days``); a run that reuses another seed's
+    (``reused_paper``; both with the figures' seeds) costs what ``main`` (:func:`measured_lookup`) says a reused main
+    evaluation costs. None where nothing was measured."""
+    def lookup(job: Job) -> tuple[float, str] | None:
+        w = job.wildcards
+        if root is None:
+            return None
+        if reused_paper is not None and main is not None and reused_paper(w["dataset"], w["method"], int(w["seed"])):
+            bench = f"results/benchmarks/evaluate/{w['dataset']}/{w['method']}/seed{w['seed']}.tsv"
+            return main(Job("evaluate", {k: w[k] for k in ("dataset", "method", "seed")}, bench))
+        base = root / "extra_evaluate" / w["dataset"]
+
+        def evaluated(paths: list[Path]) -> list[Path]:
+            return [p for p in paths if reused_measured is None or not reused_measured(
+                w["dataset"], w["method"], int(re.fullmatch(r"seed(\d+)\.tsv", p.name).group(1)))]
+
+        paths = evaluated(sorted(base.glob(f"{w['variant']}/{w['method']}/seed*.tsv"))) or \
+            evaluated(sorted(base.glob(f"*/{w['method']}/seed*.tsv")))
+        if not paths:
+            return None
+        per_day = statistics.median(read_seconds(p) / measured_days(w["dataset"], p.parts[-3]) for p in paths)
+        return per_day * paper_days(w["dataset"], w["variant"]), "benchmark file per day"
+
+    return lookup
 
 
 def measured_lookup(root: Path | None, *, scale: Mapping[str, float], reused_paper: Reused | None = None,
@@ -263,7 +337,8 @@ def read_seconds(path: Path) -> float:
     return float(dict(zip(head.split("\t"), row.split("\t")))["s"])
 
 
-def project(jobs: Iterable[Job], *, rates, work, days, measured, tdmpc_parallel: int) -> dict:
+def project(jobs: Iterable[Job], *, rates, work, days, measured, tdmpc_parallel: int,
+            extra: Extras | None = None) -> dict:
     """{(rule, method or ""): {"jobs", "how", "median"/"max"/"min": core-hours}} over ``jobs``."""
     rows: dict[tuple[str, str], dict] = defaultdict(lambda: {"jobs": 0, "how": set(), **dict.fromkeys(CASES, 0.0)})
     for job in jobs:
@@ -271,7 +346,7 @@ def project(jobs: Iterable[Job], *, rates, work, days, measured, tdmpc_parallel:
         row["jobs"] += 1
         for case in CASES:
             s, how = job_seconds(job, rates=rates, work=work, days=days, measured=measured,
-                                 tdmpc_parallel=tdmpc_parallel, case=case)
+                                 tdmpc_parallel=tdmpc_parallel, case=case, extra=extra)
             row[case] += s / 3600.0
         row["how"].add(how)
     return dict(rows)
@@ -306,6 +381,8 @@ def main() -> None:
                     help="bench_learners.py's result (its 'current' side); given again, a later file's learners "
                          "replace an earlier one's (default: benchmarks/results/learners_cpu_t1.json)")
     ap.add_argument("--target", default="tables", help="the Snakemake target whose jobs are projected")
+    ap.add_argument("--after", help="leave out the jobs of this target's DAG (`--target figures --after tables`: "
+                                    "what `figures` adds after `tables`)")
     ap.add_argument("--jobs", type=Path, help="a saved `snakemake -n --forceall` output instead of running it")
     ap.add_argument("--measured", type=Path, default=ROOT / "results" / "benchmarks",
                     help="a finished run's results/benchmarks (the jobs not timed by bench_learners.py)")
@@ -321,20 +398,36 @@ def main() -> None:
     settings = runconfig.resolve({**config, "profile": "paper"})
     there = runconfig.resolve({**config, "profile": args.measured_profile})
     jobs = parse_dryrun(args.jobs.read_text()) if args.jobs else dag_jobs(args.target)
+    before = len(jobs)
+    if args.after:
+        held = {(j.rule, tuple(sorted(j.wildcards.items()))) for j in dag_jobs(args.after)}
+        jobs = [j for j in jobs if (j.rule, tuple(sorted(j.wildcards.items()))) not in held]
     days = eval_days(config)
     root = args.measured if args.measured.is_dir() else None
     scale = {ds: days[ds] / day_limit(config, args.measured_profile, ds) for ds in days}
-    rows = project(jobs, rates=rates, work=train_work(settings), days=days,
-                   measured=measured_lookup(root, scale=scale,
-                                            reused_paper=lambda *k: runconfig.reused_seed(settings, *k) is not None,
-                                            reused_measured=lambda *k: runconfig.reused_seed(there, *k) is not None),
-                   tdmpc_parallel=settings.methods["tdmpc"].options.parallel)
+    main_lookup = measured_lookup(root, scale=scale,
+                                  reused_paper=lambda *k: runconfig.reused_seed(settings, *k) is not None,
+                                  reused_measured=lambda *k: runconfig.reused_seed(there, *k) is not None)
+    def reused_extra(s):     # an extra run that reuses another seed's under the settings ``s``
+        return lambda ds, m, seed: runconfig.reused_seed(s, ds, m, seed, runconfig.figure_seeds(s, ds)) is not None
+
+    extra = Extras(days=extra_days(config, settings), probe_points=len(settings.figures.sample_efficiency.fractions),
+                   measured=extra_lookup(root, paper_days=extra_days(config, settings),
+                                         measured_days=extra_days(config, there), main=main_lookup,
+                                         reused_paper=reused_extra(settings), reused_measured=reused_extra(there)))
+    rows = project(jobs, rates=rates, work=train_work(settings), days=days, measured=main_lookup,
+                   tdmpc_parallel=settings.methods["tdmpc"].options.parallel, extra=extra)
+    after = f", less the {before - len(jobs)} of `{args.after}`" if args.after else ""
     notes = [*rate_notes,
-             f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`",
+             f"jobs: {len(jobs)} of `snakemake -n --forceall --config profile=paper {args.target}`{after}",
              f"test days per evaluation: {days}; other jobs: {root or 'no measured run'} (evaluations x paper days /"
              f" {args.measured_profile} days), else {DEFAULT_S:.0f} s",
              "one job = one core; DSWM+'s and the probes' planners cost DSWM's plan; SAC's and MADDPG's random "
-             "transitions at the environment's rate"]
+             "transitions at the environment's rate",
+             "figures: an extra_train as its method's train job; an extra run of a planner its days x DSWM's plan, of "
+             "another method the measured extra runs' seconds per day x its days; a probe of a planner (TD-MPC) "
+             f"{extra.probe_points} snapshots x one day of DSWM's plan (of MPPI), of another method its measured "
+             "file; wm_quality its measured file, unscaled"]
     print(report(rows, notes=notes))
 
 

@@ -18,6 +18,7 @@ import bench_learners  # noqa: E402
 import diagnose_emorl  # noqa: E402
 import gemm_ceiling  # noqa: E402
 import project_paper as pp  # noqa: E402
+from dswm import settings as runconfig  # noqa: E402
 from dswm.config import load_yaml  # noqa: E402
 
 DRYRUN = """\
@@ -144,6 +145,49 @@ def test_a_reused_evaluation_costs_what_the_measured_runs_reused_ones_cost(tmp_p
     # without the two functions, as before: any seed's file, every job scaled
     plain = pp.measured_lookup(tmp_path / "benchmarks", scale={"milan": 7 / 3})
     assert plain(job("evaluate", "milan", "ceiling", 4)) == (pytest.approx(8.0 * 7 / 3), "benchmark file")
+
+
+def test_the_figures_jobs_cost_their_work_days_and_snapshots(tmp_path):
+    config = load_yaml(ROOT / "config.yaml")
+    paper = runconfig.resolve({**config, "profile": "paper"})
+    demo = runconfig.resolve({**config, "profile": "demo"})
+    # the paper's extra runs plan every test day, the demo's the figures' 2 ID days or the map's and grid's 1
+    assert pp.extra_days(config, paper)("milan", "D250u2") == 7 and pp.extra_days(config, paper)("milan", "K8") == 7
+    assert pp.extra_days(config, demo)("milan", "D250u2") == 1 and pp.extra_days(config, demo)("milan", "u2") == 2
+    root = tmp_path / "benchmarks"
+    for rel, s in (("extra_evaluate/milan/u2/greedy/seed0.tsv", 20.0),
+                   ("extra_evaluate/milan/K8/greedy/seed0.tsv", 40.0),
+                   ("evaluate/milan/greedy/seed1.tsv", 5.0), ("probe/milan/ppo/seed0.tsv", 9.0)):
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(f"s\th:m:s\tmax_rss\n{s}\t0:00:30\t600.0\n")
+    reused = lambda ds, method, seed: seed > 0     # noqa: E731
+    main = pp.measured_lookup(root, scale={"milan": 7 / 3}, reused_paper=reused, reused_measured=reused)
+    extra = pp.Extras(days=lambda ds, v: 7, probe_points=4,
+                      measured=pp.extra_lookup(root, paper_days=lambda ds, v: 7, measured_days=lambda ds, v: 2,
+                                               reused_paper=reused, reused_measured=reused, main=main))
+    jobs = [job("extra_train", "milan", "dswm", 0), job("extra_evaluate", "milan", "perfect", 0),
+            job("extra_evaluate", "milan", "greedy", 0), job("extra_evaluate", "milan", "greedy", 3),
+            job("probe", "milan", "dswm", 0), job("probe", "milan", "tdmpc", 0), job("probe", "milan", "ppo", 0)]
+    for j, variant in zip(jobs, ("u2", "D250", "u2", "u2", None, None, None)):
+        if variant:
+            j.wildcards["variant"] = variant
+    rows = pp.project(jobs, rates=RATES, work=WORK, days={"milan": 7}, measured=main, tdmpc_parallel=10, extra=extra)
+    h = 3600.0
+    assert rows[("extra_train", "dswm")]["median"] == pytest.approx(3606 / h)     # as a main world-model training
+    assert rows[("extra_evaluate", "perfect")]["median"] == pytest.approx(7 * 143 * 0.5 / h)
+    # greedy at seed 0: its own variant's 20 s over 2 days, x 7 days; at seed 3 the reused main evaluation's 5 s
+    assert rows[("extra_evaluate", "greedy")]["median"] == pytest.approx((70 + 5) / h)
+    assert rows[("extra_evaluate", "greedy")]["how"] == {"benchmark file per day", "benchmark file (reused seed)"}
+    assert rows[("probe", "dswm")]["median"] == pytest.approx(4 * 143 * 0.5 / h)   # 4 snapshots x one day of plans
+    assert rows[("probe", "tdmpc")]["median"] == pytest.approx(4 * 143 / 20 / h)
+    assert rows[("probe", "ppo")]["median"] == pytest.approx(9 / h)
+    # a variant that did not run there takes the method's other variants on the dataset, per day
+    other = extra.measured(pp.Job("extra_evaluate", {"dataset": "milan", "variant": "u0.5", "method": "greedy",
+                                                     "seed": "0"}, None))
+    assert other == (pytest.approx((20 + 40) / 2 / 2 * 7), "benchmark file per day")
+    # without the figures' costing, an extra run of a planner is a measured file like any job (none here: default)
+    plain = pp.project(jobs[1:2], rates=RATES, work=WORK, days={"milan": 7}, measured=main, tdmpc_parallel=10)
+    assert plain[("extra_evaluate", "perfect")]["how"] == {"default"}
 
 
 def test_a_later_rates_file_replaces_only_the_learners_it_measured():
