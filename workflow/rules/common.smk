@@ -170,7 +170,7 @@ def reused_evaluation(wildcards, outputs=None, seeds=None):
         return {}
     source = {**dict(wildcards.items()), "seed": first}
     outputs = rules.evaluate.output if outputs is None else outputs
-    return {f"reuse_{name}": getattr(outputs, name).format(**source) for name in ("days", "trajectory", "record")}
+    return {f"reuse_{name}": getattr(outputs, name).format(**source) for name in S.REUSED_FILES}
 
 
 def start_priority(wildcards):

@@ -37,7 +37,7 @@ from dswm.pipeline.setup import (JobSetup, build_controller, init_process, load_
                                  training_core)
 from dswm.protocol import calibration, evaluation, selection, tables
 from dswm.protocol.reuse import reuse_evaluation
-from dswm.settings import (CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, Runtime,
+from dswm.settings import (REUSED_FILES, CalibrationSettings, Display, EvalDayLimits, EvaluationSettings, Runtime,
                            SelectionSettings)
 from dswm.sim.scenario import Scenario
 from prep.atomic import save_npz, write_json
@@ -146,10 +146,6 @@ def finish_training(run: tracking.JobRun, ctrl: Controller, manifest: dict, *, m
                      "train/steps": float(manifest.get("steps", 0))})
     run.log_artifact(manifest_out)
     return manifest
-
-
-REUSED_FILES = ("days", "trajectory", "record")
-"""The files of a reused evaluation, Snakemake inputs ``reuse_<name>`` (workflow/rules/common.smk reused_evaluation)."""
 
 
 def reused_inputs(inputs) -> dict[str, str] | None:

@@ -31,7 +31,7 @@ from dswm.settings.calibration import CALIBRATION_RECORD, calibrated_scenario, i
 from dswm.settings.learning import (LearningSettings, capped_settings, check_learning, learning_methods,
                                     learning_priority, learning_references, learning_score_slice, learning_settings,
                                     learning_train_slice)
-from dswm.settings.model import MethodSettings, Settings, evaluated_as, needs_gpu, reused_seed
+from dswm.settings.model import REUSED_FILES, MethodSettings, Settings, evaluated_as, needs_gpu, reused_seed
 from dswm.settings.resolver import (check_figures, check_profile_datasets, check_raw_files, resolve,
                                    select_profile)
 from dswm.settings.schema import (SCHEMA, SETTINGS_MARKER, coerce_cli_strings, complete_schema, load_schema,
@@ -58,7 +58,7 @@ __all__ = [
     "CALIBRATION_RECORD", "calibrated_scenario", "intensity_inputs", "read_intensity",
     "LearningSettings", "capped_settings", "check_learning", "learning_methods", "learning_priority",
     "learning_references", "learning_score_slice", "learning_settings", "learning_train_slice",
-    "MethodSettings", "Settings", "evaluated_as", "needs_gpu", "reused_seed",
+    "MethodSettings", "REUSED_FILES", "Settings", "evaluated_as", "needs_gpu", "reused_seed",
     "check_figures", "check_profile_datasets", "check_raw_files", "resolve", "select_profile",
     "SCHEMA", "SETTINGS_MARKER", "coerce_cli_strings", "complete_schema", "load_schema", "settings_class",
     "validate_config",

@@ -124,6 +124,11 @@ def evaluated_as(settings: Settings, method: str) -> list[str]:
     return [m for m, src in settings.training_sources().items() if src == method] or [method]
 
 
+REUSED_FILES = ("days", "trajectory", "record")
+"""The files of a reused evaluation: an evaluate or extra_evaluate job's outputs of these names at the first seed are
+its Snakemake inputs ``reuse_<name>`` (workflow/rules/common.smk ``reused_evaluation``)."""
+
+
 def reused_seed(settings: Settings, dataset: str, method: str, seed: int,
                 seeds: Sequence[int] | None = None) -> int | None:
     """The seed whose evaluation of ``method`` on ``dataset`` the evaluate job of ``seed`` reuses, or None when the
