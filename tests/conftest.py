@@ -163,3 +163,16 @@ def prepare_from_config(config: dict, dataset: str, **kwargs):
 
     return prepare_dataset(dataset_of(config, dataset), common_from_plain(config["datasets"]["common"]), dataset,
                            **kwargs)
+
+
+def dry_run_blocks(text: str) -> dict[tuple[str, str], str]:
+    """{(rule, first output): the job's block} of every job a ``snakemake -n`` output printed."""
+    import re
+
+    jobs = {}
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", text):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+        if head and out:
+            jobs[(head.group(1), out.group(1))] = block
+    return jobs

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import dry_run_blocks
 from dswm import settings as runconfig
 from dswm.config import load_yaml
 
@@ -16,12 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def job_resources(text: str) -> dict[tuple[str, str], dict[str, str]]:
     """{(rule, first output): {resource: value}} of every job a dry run printed."""
     jobs = {}
-    for block in re.split(r"\n(?=(?:local)?rule \w+:)", text):
-        head = re.match(r"(?:local)?rule (\w+):", block)
-        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+    for key, block in dry_run_blocks(text).items():
         res = re.search(r"^\s+resources: (.+)$", block, flags=re.M)
-        if head and out and res:
-            jobs[(head.group(1), out.group(1))] = dict(kv.split("=", 1) for kv in res.group(1).split(", "))
+        if res:
+            jobs[key] = dict(kv.split("=", 1) for kv in res.group(1).split(", "))
     return jobs
 
 
@@ -63,12 +62,9 @@ def _priorities(*config: str) -> tuple[int, dict[str, str]]:
                            "--cores", "2", *targets, "--config", "profile=smoke", *config], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     found = {}
-    for block in re.split(r"\n(?=(?:local)?rule \w+:)", proc.stdout + proc.stderr):
-        head = re.match(r"(?:local)?rule (\w+):", block)
-        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
-        if head and out:
-            prio = re.search(r"^\s+priority: (\d+)$", block, flags=re.M)
-            found[f"{head.group(1)} {out.group(1)}"] = prio.group(1) if prio else "0"
+    for (rule, out), block in dry_run_blocks(proc.stdout + proc.stderr).items():
+        prio = re.search(r"^\s+priority: (\d+)$", block, flags=re.M)
+        found[f"{rule} {out}"] = prio.group(1) if prio else "0"
     return proc.returncode, found if proc.returncode == 0 else {"error": proc.stdout + proc.stderr}
 
 

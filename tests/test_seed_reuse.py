@@ -17,7 +17,7 @@ from dswm.protocol.reuse import reuse_evaluation
 from prep.atomic import save_npz
 from test_evaluation import RUN, toy_tensor
 
-from conftest import ROOT
+from conftest import ROOT, dry_run_blocks
 
 LIMITS = {"id": 1, "ood": 1}
 TIMING = "plan_ms_per_slot"
@@ -69,19 +69,17 @@ def test_only_the_later_seeds_of_a_deterministic_method_reuse_and_only_when_the_
 def _job_inputs(text: str) -> dict[str, list[str]]:
     """{rule and first output: input files} of every job block of a dry run."""
     found = {}
-    for block in re.split(r"\n(?=(?:local)?rule \w+:)", text):
-        head = re.match(r"(?:local)?rule (\w+):", block)
-        out = re.search(r"^\s+output: ([^,\n]+)", block, flags=re.M)
+    for (rule, out), block in dry_run_blocks(text).items():
         inp = re.search(r"^\s+input: (.+)$", block, flags=re.M)
-        if head and out:
-            found[f"{head.group(1)} {out.group(1)}"] = inp.group(1).split(", ") if inp else []
+        found[f"{rule} {out}"] = inp.group(1).split(", ") if inp else []
     return found
 
 
 def test_the_workflow_gives_a_later_seeds_job_the_first_seeds_evaluation_main_and_extra():
     """In the DAG (a smoke dry run with Milan seeds 0 and 1 in the profile and the figures): the evaluate and the
     extra_evaluate job of seed 1 of a deterministic method read seed 0's three files; a learning method's do not."""
-    targets = [f"results/{sub}/{m}/seed1/days.parquet" for sub in ("milan", "extra/milan/u2") for m in ("static", "dswm")]
+    targets = [f"results/{sub}/{m}/seed1/days.parquet"
+               for sub in ("milan", "extra/milan/u2") for m in ("static", "dswm")]
     proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--forceall", "--nolock",
                            "--cores", "2", *targets, "--config", "profile=smoke",
                            "profiles={smoke: {seeds: {milan: [0, 1]}}}", "figures={budgets: {smoke: {seeds: [0, 1]}}}"],
