@@ -277,7 +277,7 @@ def extra_lookup(root: Path | None, *, paper_days: Callable[[str, str], int],
 
         def evaluated(paths: list[Path]) -> list[Path]:
             return [p for p in paths if reused_measured is None or not reused_measured(
-                w["dataset"], w["method"], int(re.fullmatch(r"seed(\d+)\.tsv", p.name).group(1)))]
+                w["dataset"], w["method"], seed_of(p))]
 
         paths = evaluated(sorted(base.glob(f"{w['variant']}/{w['method']}/seed*.tsv"))) or \
             evaluated(sorted(base.glob(f"*/{w['method']}/seed*.tsv")))
@@ -311,8 +311,7 @@ def measured_lookup(root: Path | None, *, scale: Mapping[str, float], reused_pap
         def same_kind(path: Path) -> bool:     # evaluate/<dataset>/<method>/seed<seed>.tsv
             if not evaluates or reused_measured is None:
                 return True
-            seed = int(re.fullmatch(r"seed(\d+)\.tsv", path.name).group(1))
-            return reused_measured(path.parts[-3], w["method"], seed) == reuses
+            return reused_measured(path.parts[-3], w["method"], seed_of(path)) == reuses
 
         own = root / rel
         pattern = re.sub(r"seed\d+", "seed*", str(rel))
@@ -329,6 +328,11 @@ def measured_lookup(root: Path | None, *, scale: Mapping[str, float], reused_pap
         return value * factor, "benchmark file"
 
     return lookup
+
+
+def seed_of(path: Path) -> int:
+    """The seed of a job's benchmark file, ``.../seed<seed>.tsv``."""
+    return int(re.fullmatch(r"seed(\d+)\.tsv", path.name).group(1))
 
 
 def read_seconds(path: Path) -> float:
