@@ -38,7 +38,8 @@ D = 7 * 36 + 7 * K + 2
 
 PPO_OPTIONS = {"n_envs": 2, "day_episodes": 4, "net_arch": [32, 32], "learning_rate": 1.0e-3, "gamma": 0.9,
                "batch_size": 143, "checkpoint_every": 1, "n_epochs": 4, "gae_lambda": 0.95, "clip_range": 0.2,
-               "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5, "log_std_init": -0.5}
+               "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5, "log_std_init": -0.5, "use_sde": False,
+               "sde_sample_freq": 4}
 SAC_OPTIONS = {"n_envs": 2, "day_episodes": 4, "net_arch": [32, 32], "learning_rate": 1.0e-3, "gamma": 0.9,
                "batch_size": 64, "checkpoint_every": 1, "buffer_size": 3000, "learning_starts": 100, "tau": 0.05,
                "train_freq": 1, "gradient_steps": 1, "ent_coef_init": 0.1, "auto_entropy": True,
@@ -344,6 +345,27 @@ def test_the_evaluation_acts_with_the_policys_mean_and_sampling_is_the_diagnosti
     spread = draws.std(0)
     assert spread.min() > 0.01  # every coordinate varies between draws
     assert np.abs(draws.mean(0) - mean).mean() < spread.mean()  # centred near the mean action
+    assert np.array_equal(run_actions(ctl, small, [0, 1], 1)[0], mean)
+
+
+def test_ppo_with_gsde_samples_a_state_dependent_noise_held_until_its_matrix_is_drawn_again(small, tmp_path):
+    """``use_sde``: SB3's gSDE, trained with the matrix drawn every ``sde_sample_freq`` slots. Its noise is a linear map
+    of the last hidden features: the same state under the same matrix gets the same sample, a new matrix another."""
+    ctl, _ = fit("ppo", small, tmp_path, use_sde=True, sde_sample_freq=4)
+    policy = ctl.model.policy
+    assert policy.use_sde and ctl.model.sde_sample_freq == 4
+    assert tuple(policy.log_std.shape) == (32, 3 * K)  # one scale per (hidden feature, action), not per action
+    mean, _ = run_actions(ctl, small, [0, 1], 1)
+    ctl.deterministic = False
+    try:
+        first, _ = run_actions(ctl, small, [0, 1], 1)
+        again, _ = run_actions(ctl, small, [0, 1], 1)
+        policy.reset_noise(2)
+        redrawn, _ = run_actions(ctl, small, [0, 1], 1)
+    finally:
+        ctl.deterministic = True
+    assert np.array_equal(first, again)
+    assert np.abs(first - mean).mean() > 0.01 and np.abs(redrawn - first).mean() > 0.01
     assert np.array_equal(run_actions(ctl, small, [0, 1], 1)[0], mean)
 
 

@@ -78,9 +78,24 @@ class SB3Settings(SB3Params):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class PPOSettings(SB3Settings, PPOParams):
-    """PPO (``methods.ppo``): :class:`~dswm.methods.rl.common.PPOParams` and the budget."""
+    """PPO (``methods.ppo``): :class:`~dswm.methods.rl.common.PPOParams`, its exploration and the budget."""
 
     section: ClassVar[str] = "methods.ppo"
+
+    use_sde: bool = setting("flag")
+    """SB3's generalized state-dependent exploration (gSDE, Raffin et al. 2022) in place of independent Gaussian noise
+    per slot: the noise is a linear map of the policy's last hidden features whose matrix is drawn anew every
+    ``sde_sample_freq`` slots, and ``log_std_init`` is the log std of that matrix's entries."""
+    sde_sample_freq: int = setting(schema={"anyOf": [{"type": "integer", "minimum": 1}, {"const": -1}],
+                                           "description": "an integer >= 1, or -1 (once per rollout)"})
+    """With ``use_sde``: slots between draws of the noise matrix (-1: one draw per rollout, i.e. per day)."""
+
+    def ppo_kwargs(self, horizon: int) -> dict:
+        """:meth:`PPOParams.ppo_kwargs` with the exploration: gSDE's two keys where ``use_sde`` is on."""
+        kwargs = super().ppo_kwargs(horizon)
+        if self.use_sde:
+            kwargs.update(use_sde=True, sde_sample_freq=self.sde_sample_freq)
+        return kwargs
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
